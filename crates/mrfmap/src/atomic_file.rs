@@ -1,0 +1,75 @@
+//! Atomic file output: write to a temporary file in the same folder, then rename.
+//!
+//! A crash or an error half-way through never leaves a truncated map, PLY or PNG
+//! where the user expects a complete one.
+
+use std::fs::File;
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+
+use crate::error::{Error, Result};
+
+/// Writes `path` through `fill`; the file appears (by rename) only if `fill` succeeds.
+///
+/// ```
+/// # let dir = std::env::temp_dir().join(format!("mrfmap-doc-atomic-{}", std::process::id()));
+/// # std::fs::create_dir_all(&dir).unwrap();
+/// use std::io::Write;
+/// let path = dir.join("hello.txt");
+/// mrfmap::atomic_file::write_atomic(&path, |w| w.write_all(b"hello")).unwrap();
+/// assert_eq!(std::fs::read(&path).unwrap(), b"hello");
+/// # std::fs::remove_dir_all(&dir).unwrap();
+/// ```
+pub fn write_atomic(
+    path: &Path,
+    fill: impl FnOnce(&mut BufWriter<File>) -> std::io::Result<()>,
+) -> Result<()> {
+    let tmp = temp_path(path);
+    let result = (|| {
+        let file = File::create(&tmp)?;
+        let mut writer = BufWriter::new(file);
+        fill(&mut writer)?;
+        writer.flush()?;
+        writer.get_ref().sync_all()?;
+        drop(writer);
+        std::fs::rename(&tmp, path)
+    })();
+    result.map_err(|e| {
+        let _ = std::fs::remove_file(&tmp);
+        Error::io(path, e)
+    })
+}
+
+/// `dir/.name.PID.tmp`: same folder (so the rename is atomic), hidden, unique per process.
+fn temp_path(path: &Path) -> PathBuf {
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    path.with_file_name(format!(".{name}.{}.tmp", std::process::id()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn failed_fill_leaves_no_file() {
+        let dir = std::env::temp_dir().join(format!("mrfmap-atomic-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("out.bin");
+        let err = write_atomic(&path, |w| {
+            w.write_all(b"partial")?;
+            Err(std::io::Error::other("boom"))
+        })
+        .unwrap_err();
+        assert!(err.to_string().contains("out.bin"), "{err}");
+        assert!(!path.exists());
+        assert_eq!(
+            std::fs::read_dir(&dir).unwrap().count(),
+            0,
+            "temporary file left behind"
+        );
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}

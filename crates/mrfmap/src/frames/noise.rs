@@ -1,0 +1,281 @@
+//! The forward sensor noise model (ALGORITHMS.md section 3, MRFMap sec. IV-C).
+//!
+//! A surface at true z-depth `z` is measured as `Normal(z + bias(z), std(z)^2)`, with
+//! polynomials of degree 0-2 in `z`, either one aggregate pair for the whole image or one
+//! pair per square pixel patch. Every engine that uses a forward model reads it from here.
+
+use std::fmt::Write as _;
+use std::path::Path;
+
+use serde::Deserialize;
+
+use crate::error::{Error, Result, parse_toml, read_text};
+use crate::frames::Camera;
+
+/// Standard deviations are clamped below at this value (metres), so a fitted polynomial that
+/// dips to zero or below never yields a degenerate Gaussian.
+pub const STD_FLOOR: f64 = 1e-4;
+
+/// A polynomial `c0 + c1 z + c2 z^2` (ascending coefficients, unused ones zero).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Poly(pub [f64; 3]);
+
+impl Poly {
+    /// Evaluates the polynomial at `z` (Horner).
+    #[inline]
+    pub fn eval(&self, z: f64) -> f64 {
+        let [c0, c1, c2] = self.0;
+        c0 + z * (c1 + z * c2)
+    }
+
+    fn from_coeffs(c: &[f64]) -> std::result::Result<Self, String> {
+        if c.is_empty() || c.len() > 3 {
+            return Err(format!(
+                "a polynomial needs 1 to 3 coefficients, got {}",
+                c.len()
+            ));
+        }
+        if c.iter().any(|v| !v.is_finite()) {
+            return Err("polynomial coefficient is NaN or infinite".into());
+        }
+        let mut p = [0.0; 3];
+        p[..c.len()].copy_from_slice(c);
+        Ok(Poly(p))
+    }
+}
+
+/// Per-patch polynomials over a grid of `size x size` pixel patches.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PatchModel {
+    /// Patch side in pixels.
+    pub size: u32,
+    /// Patch rows: `ceil(height / size)`.
+    pub rows: u32,
+    /// Patch columns: `ceil(width / size)`.
+    pub cols: u32,
+    /// Bias polynomial per patch, row-major, top row first.
+    pub bias: Vec<Poly>,
+    /// Standard-deviation polynomial per patch, same order.
+    pub std: Vec<Poly>,
+}
+
+/// A depth sensor's forward noise model.
+///
+/// ```
+/// use mrfmap::frames::{NoiseModel, Poly};
+/// let model = NoiseModel::aggregate(Poly([0.0, 0.0, 0.004]), Poly([0.002, 0.0, 0.0035]));
+/// let (bias, std) = model.bias_std(10, 10, 2.0);
+/// assert!((bias - 0.016).abs() < 1e-12);
+/// assert!((std - 0.016).abs() < 1e-12);
+/// ```
+#[derive(Clone, Debug, PartialEq)]
+pub struct NoiseModel {
+    /// Aggregate bias polynomial.
+    pub bias: Poly,
+    /// Aggregate standard-deviation polynomial.
+    pub std: Poly,
+    /// Optional per-patch polynomials; when present they replace the aggregate.
+    pub patches: Option<PatchModel>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct NoiseFile {
+    bias: Vec<f64>,
+    std: Vec<f64>,
+    patches: Option<PatchFile>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct PatchFile {
+    size: u32,
+    rows: u32,
+    cols: u32,
+    bias: Vec<Vec<f64>>,
+    std: Vec<Vec<f64>>,
+}
+
+impl NoiseModel {
+    /// One pair of polynomials for every pixel.
+    pub fn aggregate(bias: Poly, std: Poly) -> Self {
+        NoiseModel {
+            bias,
+            std,
+            patches: None,
+        }
+    }
+
+    /// Reads a `noise.toml` file.
+    pub fn load(path: &Path) -> Result<Self> {
+        Self::from_toml(&read_text(path)?, path)
+    }
+
+    /// Parses `noise.toml` text; `origin` names the file in errors.
+    pub fn from_toml(text: &str, origin: &Path) -> Result<Self> {
+        let file: NoiseFile = parse_toml(text, origin)?;
+        Self::from_file(file).map_err(|m| Error::file(origin, m))
+    }
+
+    /// Parses the `[noise]` table of a scene file (same keys as `noise.toml`).
+    pub(crate) fn from_value(value: toml::Value, origin: &Path) -> Result<Self> {
+        let file: NoiseFile = value
+            .try_into()
+            .map_err(|e: toml::de::Error| Error::file(origin, format!("[noise]: {e}")))?;
+        Self::from_file(file).map_err(|m| Error::file(origin, format!("[noise]: {m}")))
+    }
+
+    fn from_file(f: NoiseFile) -> std::result::Result<Self, String> {
+        let bias = Poly::from_coeffs(&f.bias).map_err(|m| format!("bias: {m}"))?;
+        let std = Poly::from_coeffs(&f.std).map_err(|m| format!("std: {m}"))?;
+        let patches = match f.patches {
+            None => None,
+            Some(p) => {
+                let n = p.rows as usize * p.cols as usize;
+                if p.size == 0 || n == 0 {
+                    return Err("patches: size, rows and cols must be positive".into());
+                }
+                if p.bias.len() != n || p.std.len() != n {
+                    return Err(format!(
+                        "patches: rows * cols = {n} but bias has {} and std has {} entries",
+                        p.bias.len(),
+                        p.std.len()
+                    ));
+                }
+                let parse = |list: &[Vec<f64>], what: &str| {
+                    list.iter()
+                        .enumerate()
+                        .map(|(i, c)| {
+                            Poly::from_coeffs(c).map_err(|m| format!("patches.{what}[{i}]: {m}"))
+                        })
+                        .collect::<std::result::Result<Vec<_>, _>>()
+                };
+                Some(PatchModel {
+                    size: p.size,
+                    rows: p.rows,
+                    cols: p.cols,
+                    bias: parse(&p.bias, "bias")?,
+                    std: parse(&p.std, "std")?,
+                })
+            }
+        };
+        Ok(NoiseModel { bias, std, patches })
+    }
+
+    /// Checks that the patch grid covers exactly the camera's image.
+    pub fn check_camera(&self, camera: &Camera) -> std::result::Result<(), String> {
+        if let Some(p) = &self.patches {
+            let rows = camera.height.div_ceil(p.size);
+            let cols = camera.width.div_ceil(p.size);
+            if p.rows != rows || p.cols != cols {
+                return Err(format!(
+                    "patch grid {}x{} of {} px does not fit a {}x{} image (needs {rows} rows, {cols} cols)",
+                    p.rows, p.cols, p.size, camera.width, camera.height
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// The bias and std polynomials that apply to pixel `(u, v)`.
+    #[inline]
+    pub fn polys(&self, u: u32, v: u32) -> (&Poly, &Poly) {
+        match &self.patches {
+            Some(p) => {
+                let row = (v / p.size).min(p.rows - 1);
+                let col = (u / p.size).min(p.cols - 1);
+                let i = (row * p.cols + col) as usize;
+                (&p.bias[i], &p.std[i])
+            }
+            None => (&self.bias, &self.std),
+        }
+    }
+
+    /// Bias and standard deviation (clamped to [`STD_FLOOR`]) at pixel `(u, v)` and z-depth `z`.
+    #[inline]
+    pub fn bias_std(&self, u: u32, v: u32, z: f64) -> (f64, f64) {
+        let (b, s) = self.polys(u, v);
+        (b.eval(z), s.eval(z).max(STD_FLOOR))
+    }
+
+    /// The `noise.toml` text of this model.
+    pub fn to_toml(&self) -> String {
+        let poly = |p: &Poly| format!("[{:?}, {:?}, {:?}]", p.0[0], p.0[1], p.0[2]);
+        let mut s = String::from(
+            "# Forward sensor noise model: measured z ~ Normal(z + bias(z), std(z)^2), z = true z-depth (m).\n\
+             # Polynomials with ascending coefficients [c0, c1, c2].\n",
+        );
+        let _ = writeln!(s, "bias = {}\nstd = {}", poly(&self.bias), poly(&self.std));
+        if let Some(p) = &self.patches {
+            let _ = writeln!(
+                s,
+                "\n[patches]\nsize = {}\nrows = {}\ncols = {}",
+                p.size, p.rows, p.cols
+            );
+            for (name, list) in [("bias", &p.bias), ("std", &p.std)] {
+                let _ = writeln!(s, "{name} = [");
+                for q in list {
+                    let _ = writeln!(s, "  {},", poly(q));
+                }
+                let _ = writeln!(s, "]");
+            }
+        }
+        s
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn patchy() -> NoiseModel {
+        let n = 4;
+        NoiseModel {
+            bias: Poly([0.0, 0.0, 0.0]),
+            std: Poly([0.01, 0.0, 0.0]),
+            patches: Some(PatchModel {
+                size: 20,
+                rows: 2,
+                cols: 2,
+                bias: (0..n).map(|i| Poly([i as f64 * 0.001, 0.0, 0.0])).collect(),
+                std: (0..n)
+                    .map(|i| Poly([0.002, i as f64 * 0.001, -1.0]))
+                    .collect(),
+            }),
+        }
+    }
+
+    #[test]
+    fn toml_round_trip_and_patch_lookup() {
+        let m = patchy();
+        let back = NoiseModel::from_toml(&m.to_toml(), Path::new("x.toml")).unwrap();
+        assert_eq!(back, m);
+        assert_eq!(m.bias_std(25, 5, 1.0).0, 0.001); // row 0, col 1
+        assert_eq!(m.bias_std(5, 25, 1.0).0, 0.002); // row 1, col 0
+        assert_eq!(
+            m.bias_std(0, 0, 1.0).1,
+            STD_FLOOR,
+            "negative std is floored"
+        );
+        let cam = Camera::new(1.0, 1.0, 0.0, 0.0, 40, 40, 1.0).unwrap();
+        assert!(m.check_camera(&cam).is_ok());
+        let cam = Camera::new(1.0, 1.0, 0.0, 0.0, 64, 40, 1.0).unwrap();
+        assert!(m.check_camera(&cam).is_err());
+    }
+
+    #[test]
+    fn errors_name_file_and_problem() {
+        let p = Path::new("noise.toml");
+        let e = NoiseModel::from_toml("bias = [0.0]\nstd = [0.1]\nwobble = 1\n", p)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("noise.toml") && e.contains("wobble"), "{e}");
+        let e = NoiseModel::from_toml("bias = [0.0, 1, 2, 3]\nstd = [0.1]\n", p)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("1 to 3 coefficients"), "{e}");
+        let bad = "bias = [0.0]\nstd = [0.1]\n[patches]\nsize = 20\nrows = 2\ncols = 2\nbias = [[0.0]]\nstd = [[0.1]]\n";
+        let e = NoiseModel::from_toml(bad, p).unwrap_err().to_string();
+        assert!(e.contains("rows * cols = 4"), "{e}");
+    }
+}

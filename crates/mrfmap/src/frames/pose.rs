@@ -1,0 +1,103 @@
+//! Camera poses: camera-to-world rigid transforms `T_wc` (ALGORITHMS.md section 1).
+
+use nalgebra::{Isometry3, Matrix3, Quaternion, Rotation3, Translation3, UnitQuaternion, Vector3};
+
+/// A camera-to-world transform.
+pub type Pose = Isometry3<f64>;
+
+/// How far a quaternion's norm may stray from 1 before we warn (files with 6 digits are ~1e-6 off).
+const UNIT_TOLERANCE: f64 = 1e-4;
+
+/// A pose from TUM's `tx ty tz qx qy qz qw`.
+///
+/// Errors on NaN or infinite values and on a zero quaternion. A non-unit quaternion is
+/// normalised; the returned flag says whether its norm was off by more than 1e-4, so the
+/// caller can warn, naming the file and line.
+///
+/// ```
+/// let (pose, fixed) = mrfmap::frames::pose_from_tum([1.0, 2.0, 3.0], [0.0, 0.0, 0.0, 2.0]).unwrap();
+/// assert!(fixed);
+/// assert_eq!(pose.translation.vector.x, 1.0);
+/// ```
+pub fn pose_from_tum(t: [f64; 3], q_xyzw: [f64; 4]) -> Result<(Pose, bool), String> {
+    if t.iter().chain(q_xyzw.iter()).any(|v| !v.is_finite()) {
+        return Err("pose has a NaN or infinite value".into());
+    }
+    let [qx, qy, qz, qw] = q_xyzw;
+    let q = Quaternion::new(qw, qx, qy, qz); // nalgebra takes w first
+    let norm = q.norm();
+    if norm < 1e-9 {
+        return Err("pose quaternion is zero".into());
+    }
+    let rotation = UnitQuaternion::from_quaternion(q);
+    Ok((
+        Isometry3::from_parts(Translation3::new(t[0], t[1], t[2]), rotation),
+        (norm - 1.0).abs() > UNIT_TOLERANCE,
+    ))
+}
+
+/// The TUM fields `[tx, ty, tz, qx, qy, qz, qw]` of a pose.
+pub fn pose_to_tum(pose: &Pose) -> [f64; 7] {
+    let t = pose.translation.vector;
+    let q = pose.rotation.quaternion();
+    [t.x, t.y, t.z, q.i, q.j, q.k, q.w]
+}
+
+/// A camera at `eye` looking at `target`, world up `+z` (the scene-file convention):
+/// `z_cam = normalize(target - eye)`, `x_cam = normalize(z_cam x up)`, `y_cam = z_cam x x_cam`.
+///
+/// Fails when the view direction is vertical (no unique right vector) or `eye == target`.
+pub fn look_at(eye: Vector3<f64>, target: Vector3<f64>) -> Result<Pose, String> {
+    let forward = target - eye;
+    if forward.norm() < 1e-12 {
+        return Err("eye and target coincide".into());
+    }
+    let z = forward.normalize();
+    let right = z.cross(&Vector3::z());
+    if right.norm() < 1e-9 {
+        return Err("view direction is vertical: up vector +z is ambiguous".into());
+    }
+    let x = right.normalize();
+    let y = z.cross(&x);
+    let rotation = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[x, y, z]));
+    Ok(Isometry3::from_parts(
+        Translation3::from(eye),
+        UnitQuaternion::from_rotation_matrix(&rotation),
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tum_round_trip() {
+        let q = [0.1, -0.2, 0.3, 0.9];
+        let n = (0.01f64 + 0.04 + 0.09 + 0.81).sqrt();
+        let (pose, fixed) = pose_from_tum([1.0, 2.0, 3.0], q).unwrap();
+        assert!(fixed);
+        let back = pose_to_tum(&pose);
+        for k in 0..4 {
+            assert!((back[3 + k] - q[k] / n).abs() < 1e-12);
+        }
+    }
+
+    #[test]
+    fn nan_rejected() {
+        assert!(pose_from_tum([f64::NAN, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]).is_err());
+        assert!(pose_from_tum([0.0; 3], [0.0; 4]).is_err());
+    }
+
+    #[test]
+    fn look_at_axes() {
+        let pose = look_at(Vector3::new(3.6, 2.0, 1.4), Vector3::new(2.0, 2.0, 1.4)).unwrap();
+        let r = pose.rotation.to_rotation_matrix();
+        let fwd = r * Vector3::z();
+        let right = r * Vector3::x();
+        let down = r * Vector3::y();
+        assert!((fwd - Vector3::new(-1.0, 0.0, 0.0)).norm() < 1e-12);
+        assert!((right - Vector3::new(0.0, 1.0, 0.0)).norm() < 1e-12);
+        assert!((down - Vector3::new(0.0, 0.0, -1.0)).norm() < 1e-12);
+        assert!(look_at(Vector3::zeros(), Vector3::new(0.0, 0.0, -1.0)).is_err());
+    }
+}

@@ -1,0 +1,105 @@
+//! Inference engines: turn frames into voxel occupancy beliefs.
+//!
+//! Every engine implements [`Engine`]: frames go in through [`Engine::integrate`], a
+//! finished [`Map`] comes out of [`Engine::map`]. Engines read rays through
+//! [`crate::rays`] and keep their state in a [`crate::map::Grid`]. Available:
+//!
+//! - [`LogOddsEngine`]: OctoMap's occupancy grid update (ALGORITHMS.md 5.1), the baseline
+//!   and the fast everyday mode.
+
+mod logodds;
+
+use std::fmt;
+use std::str::FromStr;
+
+pub use logodds::{LogOddsEngine, LogOddsParams};
+
+use crate::error::{Error, Result};
+use crate::frames::Frame;
+use crate::map::Map;
+use crate::rays::RayLimits;
+
+/// An occupancy inference engine.
+pub trait Engine: Send {
+    /// Short name stored in map files (`logodds`, ...).
+    fn name(&self) -> &'static str;
+    /// Voxel edge in metres.
+    fn resolution(&self) -> f64;
+    /// Adds one frame's evidence.
+    fn integrate(&mut self, frame: &Frame) -> Result<()>;
+    /// The current map: occupancy (and variance where the engine has one) per voxel.
+    fn map(&self) -> Map;
+}
+
+/// The engines this build offers.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum EngineKind {
+    /// [`LogOddsEngine`].
+    LogOdds,
+}
+
+impl EngineKind {
+    /// All engines, in the order the demo and reports use.
+    pub const ALL: &[EngineKind] = &[EngineKind::LogOdds];
+
+    /// The name used on the command line and in map files.
+    pub fn name(self) -> &'static str {
+        match self {
+            EngineKind::LogOdds => "logodds",
+        }
+    }
+}
+
+impl fmt::Display for EngineKind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl FromStr for EngineKind {
+    type Err = Error;
+
+    fn from_str(s: &str) -> Result<Self> {
+        EngineKind::ALL
+            .iter()
+            .copied()
+            .find(|k| k.name() == s)
+            .ok_or_else(|| {
+                let names: Vec<_> = EngineKind::ALL.iter().map(|k| k.name()).collect();
+                Error::Invalid(format!(
+                    "unknown engine {s:?}; available: {}",
+                    names.join(", ")
+                ))
+            })
+    }
+}
+
+/// What every engine is built from.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct EngineConfig {
+    /// Which engine.
+    pub kind: EngineKind,
+    /// Voxel edge in metres.
+    pub resolution: f64,
+    /// Max range and bounding box applied to every ray.
+    pub limits: RayLimits,
+}
+
+/// Builds the engine `config` asks for, with its default parameters.
+///
+/// ```
+/// use mrfmap::inference::{EngineConfig, EngineKind, new_engine};
+/// let engine = new_engine(&EngineConfig { kind: EngineKind::LogOdds, resolution: 0.05, limits: Default::default() }).unwrap();
+/// assert_eq!(engine.name(), "logodds");
+/// assert!(new_engine(&EngineConfig { kind: EngineKind::LogOdds, resolution: -1.0, limits: Default::default() }).is_err());
+/// ```
+pub fn new_engine(config: &EngineConfig) -> Result<Box<dyn Engine>> {
+    config.limits.validate()?;
+    Ok(match config.kind {
+        EngineKind::LogOdds => Box::new(LogOddsEngine::new(
+            config.resolution,
+            config.limits,
+            LogOddsParams::default(),
+        )?),
+    })
+}

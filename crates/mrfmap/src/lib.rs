@@ -1,0 +1,40 @@
+//! # mrfmap
+//!
+//! Probabilistic 3D occupancy mapping from depth cameras with forward sensor models.
+//!
+//! The modules follow the data's path:
+//!
+//! - [`source`]: where frames come from — TUM / ICL-NUIM datasets and the scene simulator;
+//! - [`frames`]: one reading — depth image, camera, pose, noise model;
+//! - [`rays`]: pixel rays and exact voxel traversal;
+//! - [`inference`]: the engines (log-odds today) behind one [`inference::Engine`] trait;
+//! - [`map`]: the sparse bricked voxel grid and the finished [`map::Map`] with its file format;
+//! - [`outputs`]: exports (PLY).
+//!
+//! ```no_run
+//! use mrfmap::inference::{EngineConfig, EngineKind, new_engine};
+//! use mrfmap::source::Dataset;
+//!
+//! let dataset = Dataset::open("../shared/data/icl-livingroom-5".as_ref())?;
+//! let mut engine = new_engine(&EngineConfig { kind: EngineKind::LogOdds, resolution: 0.05, limits: Default::default() })?;
+//! for i in 0..dataset.len() {
+//!     engine.integrate(&dataset.frame(i)?)?;
+//! }
+//! let map = engine.map();
+//! println!("{} occupied voxels", map.occupied_count());
+//! map.save("room.mrfmap".as_ref())?;
+//! # Ok::<(), mrfmap::Error>(())
+//! ```
+#![warn(missing_docs)]
+
+pub mod atomic_file;
+mod error;
+pub mod frames;
+pub mod inference;
+pub mod map;
+pub mod outputs;
+pub mod random;
+pub mod rays;
+pub mod source;
+
+pub use error::{Error, Result};

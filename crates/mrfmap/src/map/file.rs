@@ -1,0 +1,271 @@
+//! The binary map file (`.mrfmap`), version 1. All integers little-endian.
+//!
+//! ```text
+//! magic    8 bytes   "\x89MRFMAP\n"   (the high byte and newline catch text-mode mangling)
+//! version  u32       1
+//! header   u32 length + UTF-8 TOML: engine, resolution, has_variance, bricks, voxels, [params]
+//! bricks   sorted by key; per brick: i32 x, y, z; 8 x u64 allocation mask;
+//!          per allocated voxel in slot order: f32 occupancy, then f32 variance if has_variance
+//! crc32    u32       CRC-32 (IEEE) of every byte before it
+//! ```
+
+use std::collections::BTreeMap;
+use std::io::Write;
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use super::{BrickKey, Map, MapVoxel, mask_slots};
+use crate::error::{Error, Result};
+
+const MAGIC: &[u8; 8] = b"\x89MRFMAP\n";
+const VERSION: u32 = 1;
+
+#[derive(Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Header {
+    engine: String,
+    resolution: f64,
+    has_variance: bool,
+    bricks: u64,
+    voxels: u64,
+    params: BTreeMap<String, String>,
+}
+
+pub(super) fn save(map: &Map, path: &Path) -> Result<()> {
+    let bytes = encode(map);
+    crate::atomic_file::write_atomic(path, |w| w.write_all(&bytes))
+}
+
+fn encode(map: &Map) -> Vec<u8> {
+    let header = Header {
+        engine: map.engine.clone(),
+        resolution: map.resolution(),
+        has_variance: map.has_variance,
+        bricks: map.voxels.brick_count() as u64,
+        voxels: map.voxels.len() as u64,
+        params: map.params.clone(),
+    };
+    let header = toml::to_string(&header).expect("header is plain data");
+    let mut out = Vec::with_capacity(
+        64 + header.len() + map.voxels.len() * 8 + map.voxels.brick_count() * 76,
+    );
+    out.extend_from_slice(MAGIC);
+    out.extend_from_slice(&VERSION.to_le_bytes());
+    out.extend_from_slice(&(header.len() as u32).to_le_bytes());
+    out.extend_from_slice(header.as_bytes());
+    for key in map.voxels.sorted_brick_keys() {
+        let brick = map.voxels.brick(key).expect("key from this grid");
+        for c in key.0 {
+            out.extend_from_slice(&c.to_le_bytes());
+        }
+        for w in brick.mask() {
+            out.extend_from_slice(&w.to_le_bytes());
+        }
+        for (_, v) in brick.iter() {
+            out.extend_from_slice(&v.occupancy.to_le_bytes());
+            if map.has_variance {
+                out.extend_from_slice(&v.variance.to_le_bytes());
+            }
+        }
+    }
+    let crc = crc32(&out);
+    out.extend_from_slice(&crc.to_le_bytes());
+    out
+}
+
+pub(super) fn load(path: &Path) -> Result<Map> {
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    decode(&bytes).map_err(|m| Error::file(path, m))
+}
+
+/// A cursor that turns running out of bytes into a message.
+struct Reader<'a> {
+    bytes: &'a [u8],
+    pos: usize,
+}
+
+impl<'a> Reader<'a> {
+    fn take(&mut self, n: usize) -> std::result::Result<&'a [u8], String> {
+        let end = self
+            .pos
+            .checked_add(n)
+            .filter(|e| *e <= self.bytes.len())
+            .ok_or("file is truncated")?;
+        let s = &self.bytes[self.pos..end];
+        self.pos = end;
+        Ok(s)
+    }
+    fn u32(&mut self) -> std::result::Result<u32, String> {
+        Ok(u32::from_le_bytes(self.take(4)?.try_into().unwrap()))
+    }
+    fn i32(&mut self) -> std::result::Result<i32, String> {
+        Ok(i32::from_le_bytes(self.take(4)?.try_into().unwrap()))
+    }
+    fn u64(&mut self) -> std::result::Result<u64, String> {
+        Ok(u64::from_le_bytes(self.take(8)?.try_into().unwrap()))
+    }
+    fn f32(&mut self) -> std::result::Result<f32, String> {
+        Ok(f32::from_le_bytes(self.take(4)?.try_into().unwrap()))
+    }
+}
+
+fn decode(bytes: &[u8]) -> std::result::Result<Map, String> {
+    if bytes.len() < MAGIC.len() || &bytes[..MAGIC.len()] != MAGIC {
+        return Err("not an mrfmap map file (bad magic bytes)".into());
+    }
+    if bytes.len() < MAGIC.len() + 8 {
+        return Err("file is truncated".into());
+    }
+    let version = u32::from_le_bytes(bytes[8..12].try_into().unwrap());
+    if version != VERSION {
+        return Err(format!(
+            "map format version {version} is not supported (this build reads version {VERSION})"
+        ));
+    }
+    let (body, tail) = bytes.split_at(bytes.len() - 4);
+    if crc32(body) != u32::from_le_bytes(tail.try_into().unwrap()) {
+        return Err("checksum mismatch: the file is corrupt or truncated".into());
+    }
+    let mut r = Reader {
+        bytes: body,
+        pos: 12,
+    };
+    let header_len = r.u32()? as usize;
+    let header = std::str::from_utf8(r.take(header_len)?).map_err(|_| "header is not UTF-8")?;
+    let header: Header = toml::from_str(header).map_err(|e| format!("bad header: {e}"))?;
+    let mut map =
+        Map::new(&header.engine, header.resolution).map_err(|e| format!("bad header: {e}"))?;
+    map.params = header.params;
+    map.has_variance = header.has_variance;
+    for _ in 0..header.bricks {
+        let key = BrickKey([r.i32()?, r.i32()?, r.i32()?]);
+        let mut mask = [0u64; 8];
+        for w in &mut mask {
+            *w = r.u64()?;
+        }
+        let brick = map.voxels.brick_or_insert(key);
+        for slot in mask_slots(&mask) {
+            let occupancy = r.f32()?;
+            let variance = if header.has_variance { r.f32()? } else { 0.0 };
+            brick.get_or_insert(
+                slot,
+                MapVoxel {
+                    occupancy,
+                    variance,
+                },
+            );
+        }
+    }
+    if r.pos != body.len() {
+        return Err(format!(
+            "{} unexpected bytes after the last brick",
+            body.len() - r.pos
+        ));
+    }
+    if map.voxels.len() as u64 != header.voxels {
+        return Err(format!(
+            "header says {} voxels, file holds {}",
+            header.voxels,
+            map.voxels.len()
+        ));
+    }
+    Ok(map)
+}
+
+/// CRC-32 (IEEE 802.3, as zlib and PNG), bytewise with a table built at compile time.
+fn crc32(data: &[u8]) -> u32 {
+    const TABLE: [u32; 256] = {
+        let mut t = [0u32; 256];
+        let mut i = 0;
+        while i < 256 {
+            let mut c = i as u32;
+            let mut k = 0;
+            while k < 8 {
+                c = if c & 1 != 0 {
+                    0xEDB8_8320 ^ (c >> 1)
+                } else {
+                    c >> 1
+                };
+                k += 1;
+            }
+            t[i] = c;
+            i += 1;
+        }
+        t
+    };
+    let mut c = !0u32;
+    for &b in data {
+        c = TABLE[((c ^ b as u32) & 0xFF) as usize] ^ (c >> 8);
+    }
+    !c
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::map::VoxelKey;
+    use crate::random::Rng;
+
+    fn sample_map(variance: bool) -> Map {
+        let mut map = Map::new("logodds", 0.02).unwrap();
+        map.has_variance = variance;
+        map.params.insert("p_hit".into(), "0.7".into());
+        let mut rng = Rng::new(1);
+        for _ in 0..3000 {
+            let k = VoxelKey([0; 3].map(|_| (rng.next_u64() % 100) as i32 - 50));
+            map.voxels.insert(
+                k,
+                MapVoxel {
+                    occupancy: rng.uniform() as f32,
+                    variance: rng.uniform() as f32,
+                },
+            );
+        }
+        map
+    }
+
+    #[test]
+    fn crc_known_vector() {
+        assert_eq!(crc32(b"123456789"), 0xCBF4_3926);
+    }
+
+    #[test]
+    fn round_trip_is_exact_and_deterministic() {
+        for variance in [false, true] {
+            let map = sample_map(variance);
+            let bytes = encode(&map);
+            let back = decode(&bytes).unwrap();
+            assert_eq!(encode(&back), bytes);
+            assert_eq!(back.voxels.len(), map.voxels.len());
+            for (k, v) in map.voxels.iter() {
+                let w = back.voxels.get(k).unwrap();
+                assert_eq!(w.occupancy, v.occupancy);
+                assert_eq!(w.variance, if variance { v.variance } else { 0.0 });
+            }
+            assert_eq!(back.params["p_hit"], "0.7");
+        }
+    }
+
+    #[test]
+    fn corruption_is_detected() {
+        let bytes = encode(&sample_map(false));
+        let mut flipped = bytes.clone();
+        flipped[bytes.len() / 2] ^= 0x10;
+        assert!(decode(&flipped).unwrap_err().contains("checksum"));
+        assert!(
+            decode(&bytes[..bytes.len() - 100])
+                .unwrap_err()
+                .contains("checksum")
+        );
+        assert!(
+            decode(b"ply\nformat ascii 1.0\n")
+                .unwrap_err()
+                .contains("not an mrfmap")
+        );
+        let mut future = bytes.clone();
+        future[8] = 9;
+        assert!(decode(&future).unwrap_err().contains("version 9"));
+        assert!(decode(&bytes[..10]).is_err());
+    }
+}

@@ -1,0 +1,351 @@
+//! A sparse voxel grid of 8x8x8 bricks in a hash map (ALGORITHMS.md section 4).
+//!
+//! Voxel `i` spans `[i r, (i+1) r)` per axis; its brick is `i >> 3` (floor division, so
+//! negative coordinates work) and its slot in the brick is `i & 7`. A brick stores all 512
+//! values densely plus a 512-bit mask of which voxels are allocated: unallocated means
+//! unknown. Bricks are boxed so rehashing moves pointers, not kilobytes.
+
+use rustc_hash::FxHashMap;
+
+/// Voxels per brick edge.
+pub const BRICK_EDGE: i32 = 8;
+/// Voxels per brick.
+pub const BRICK_VOXELS: usize = 512;
+const BRICK_SHIFT: u32 = 3;
+
+/// Integer voxel coordinates.
+///
+/// ```
+/// use mrfmap::map::VoxelKey;
+/// let k = VoxelKey::from_point([-0.01, 0.0, 0.049], 0.05);
+/// assert_eq!(k, VoxelKey([-1, 0, 0]));
+/// assert_eq!(k.brick(), mrfmap::map::BrickKey([-1, 0, 0]));
+/// ```
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct VoxelKey(pub [i32; 3]);
+
+/// Integer brick coordinates (voxel coordinates `>> 3`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct BrickKey(pub [i32; 3]);
+
+impl VoxelKey {
+    /// The voxel containing world point `p` at resolution `r`.
+    #[inline]
+    pub fn from_point(p: [f64; 3], r: f64) -> Self {
+        VoxelKey([
+            (p[0] / r).floor() as i32,
+            (p[1] / r).floor() as i32,
+            (p[2] / r).floor() as i32,
+        ])
+    }
+
+    /// World coordinates of the voxel centre.
+    #[inline]
+    pub fn center(&self, r: f64) -> [f64; 3] {
+        self.0.map(|i| (i as f64 + 0.5) * r)
+    }
+
+    /// The brick holding this voxel.
+    #[inline]
+    pub fn brick(&self) -> BrickKey {
+        BrickKey(self.0.map(|i| i >> BRICK_SHIFT))
+    }
+
+    /// Linear slot of this voxel inside its brick (`x + 8 y + 64 z`).
+    #[inline]
+    pub fn slot(&self) -> usize {
+        let [x, y, z] = self.0.map(|i| (i & (BRICK_EDGE - 1)) as usize);
+        x | (y << 3) | (z << 6)
+    }
+}
+
+impl BrickKey {
+    /// The voxel at `slot` of this brick.
+    #[inline]
+    pub fn voxel(&self, slot: usize) -> VoxelKey {
+        let local = [slot & 7, (slot >> 3) & 7, slot >> 6];
+        VoxelKey([0, 1, 2].map(|a| (self.0[a] << BRICK_SHIFT) + local[a] as i32))
+    }
+}
+
+/// A 512-bit set over a brick's slots.
+pub type SlotMask = [u64; 8];
+
+/// Is `slot` set in `mask`?
+#[inline]
+pub fn mask_has(mask: &SlotMask, slot: usize) -> bool {
+    mask[slot >> 6] >> (slot & 63) & 1 == 1
+}
+
+/// Sets `slot` in `mask`.
+#[inline]
+pub fn mask_set(mask: &mut SlotMask, slot: usize) {
+    mask[slot >> 6] |= 1 << (slot & 63);
+}
+
+/// Iterates the set slots of `mask` in increasing order.
+pub fn mask_slots(mask: &SlotMask) -> impl Iterator<Item = usize> + '_ {
+    mask.iter().enumerate().flat_map(|(w, &bits)| {
+        let mut rest = bits;
+        std::iter::from_fn(move || {
+            (rest != 0).then(|| {
+                let b = rest.trailing_zeros() as usize;
+                rest &= rest - 1;
+                w * 64 + b
+            })
+        })
+    })
+}
+
+/// 8x8x8 voxels with an allocation mask.
+#[derive(Clone, Debug)]
+pub struct Brick<V> {
+    mask: SlotMask,
+    values: [V; BRICK_VOXELS],
+}
+
+impl<V: Copy + Default> Brick<V> {
+    fn new() -> Self {
+        Brick {
+            mask: [0; 8],
+            values: [V::default(); BRICK_VOXELS],
+        }
+    }
+
+    /// Which slots are allocated.
+    pub fn mask(&self) -> &SlotMask {
+        &self.mask
+    }
+
+    /// Value at `slot` if allocated.
+    #[inline]
+    pub fn get(&self, slot: usize) -> Option<&V> {
+        mask_has(&self.mask, slot).then(|| &self.values[slot])
+    }
+
+    /// Mutable value at `slot`, allocating it with `init` first if needed.
+    #[inline]
+    pub fn get_or_insert(&mut self, slot: usize, init: V) -> &mut V {
+        if !mask_has(&self.mask, slot) {
+            mask_set(&mut self.mask, slot);
+            self.values[slot] = init;
+        }
+        &mut self.values[slot]
+    }
+
+    /// Number of allocated voxels.
+    pub fn len(&self) -> usize {
+        self.mask.iter().map(|w| w.count_ones() as usize).sum()
+    }
+
+    /// True if no voxel is allocated.
+    pub fn is_empty(&self) -> bool {
+        self.mask.iter().all(|w| *w == 0)
+    }
+
+    /// Allocated `(slot, value)` pairs in slot order.
+    pub fn iter(&self) -> impl Iterator<Item = (usize, &V)> + '_ {
+        mask_slots(&self.mask).map(move |s| (s, &self.values[s]))
+    }
+}
+
+/// A sparse grid of voxels of type `V` at a fixed resolution.
+///
+/// ```
+/// use mrfmap::map::{Grid, VoxelKey};
+/// let mut grid: Grid<f32> = Grid::new(0.05).unwrap();
+/// *grid.get_or_insert(VoxelKey([-3, 7, 100]), 0.0) += 0.85;
+/// assert_eq!(grid.get(VoxelKey([-3, 7, 100])), Some(&0.85));
+/// assert_eq!(grid.get(VoxelKey([-3, 7, 101])), None);
+/// assert_eq!((grid.len(), grid.brick_count()), (1, 1));
+/// ```
+#[derive(Clone, Debug)]
+pub struct Grid<V> {
+    resolution: f64,
+    bricks: FxHashMap<BrickKey, Box<Brick<V>>>,
+}
+
+impl<V: Copy + Default> Grid<V> {
+    /// An empty grid; the resolution (voxel edge in metres) must be positive and finite.
+    pub fn new(resolution: f64) -> crate::Result<Self> {
+        if !(resolution > 0.0 && resolution.is_finite()) {
+            return Err(crate::Error::Invalid(format!(
+                "resolution must be a positive number of metres, got {resolution}"
+            )));
+        }
+        Ok(Grid {
+            resolution,
+            bricks: FxHashMap::default(),
+        })
+    }
+
+    /// Voxel edge length in metres.
+    pub fn resolution(&self) -> f64 {
+        self.resolution
+    }
+
+    /// Value of an allocated voxel.
+    #[inline]
+    pub fn get(&self, key: VoxelKey) -> Option<&V> {
+        self.bricks.get(&key.brick())?.get(key.slot())
+    }
+
+    /// Mutable value of a voxel, allocating it (with `init`) and its brick if needed.
+    #[inline]
+    pub fn get_or_insert(&mut self, key: VoxelKey, init: V) -> &mut V {
+        self.brick_or_insert(key.brick())
+            .get_or_insert(key.slot(), init)
+    }
+
+    /// Sets a voxel's value, allocating it.
+    pub fn insert(&mut self, key: VoxelKey, value: V) {
+        *self.get_or_insert(key, value) = value;
+    }
+
+    /// A brick, allocating an empty one if needed.
+    pub fn brick_or_insert(&mut self, key: BrickKey) -> &mut Brick<V> {
+        self.bricks
+            .entry(key)
+            .or_insert_with(|| Box::new(Brick::new()))
+    }
+
+    /// A brick if present.
+    pub fn brick(&self, key: BrickKey) -> Option<&Brick<V>> {
+        self.bricks.get(&key).map(|b| &**b)
+    }
+
+    /// Bricks in unspecified order.
+    pub fn bricks(&self) -> impl Iterator<Item = (&BrickKey, &Brick<V>)> + '_ {
+        self.bricks.iter().map(|(k, b)| (k, &**b))
+    }
+
+    /// Mutable bricks in unspecified order (for parallel updates: collect, then `par_iter`).
+    pub fn bricks_mut(&mut self) -> impl Iterator<Item = (&BrickKey, &mut Brick<V>)> + '_ {
+        self.bricks.iter_mut().map(|(k, b)| (k, &mut **b))
+    }
+
+    /// Brick keys in sorted order, for deterministic output.
+    pub fn sorted_brick_keys(&self) -> Vec<BrickKey> {
+        let mut keys: Vec<BrickKey> = self.bricks.keys().copied().collect();
+        keys.sort_unstable();
+        keys
+    }
+
+    /// All allocated voxels in unspecified order.
+    pub fn iter(&self) -> impl Iterator<Item = (VoxelKey, &V)> + '_ {
+        self.bricks
+            .iter()
+            .flat_map(|(bk, b)| b.iter().map(move |(s, v)| (bk.voxel(s), v)))
+    }
+
+    /// Number of allocated voxels.
+    pub fn len(&self) -> usize {
+        self.bricks.values().map(|b| b.len()).sum()
+    }
+
+    /// True when nothing is allocated.
+    pub fn is_empty(&self) -> bool {
+        self.bricks.values().all(|b| b.is_empty())
+    }
+
+    /// Number of allocated bricks.
+    pub fn brick_count(&self) -> usize {
+        self.bricks.len()
+    }
+
+    /// Bytes used by bricks and the hash table (an estimate of the heap footprint).
+    pub fn memory_bytes(&self) -> usize {
+        let entry = std::mem::size_of::<(BrickKey, Box<Brick<V>>)>() + 1; // + hashbrown control byte
+        self.bricks.capacity() * entry + self.bricks.len() * std::mem::size_of::<Brick<V>>()
+    }
+
+    /// Inclusive min and max voxel keys of allocated voxels, `None` when empty.
+    pub fn key_bounds(&self) -> Option<(VoxelKey, VoxelKey)> {
+        let mut lo = [i32::MAX; 3];
+        let mut hi = [i32::MIN; 3];
+        for (k, _) in self.iter() {
+            for a in 0..3 {
+                lo[a] = lo[a].min(k.0[a]);
+                hi[a] = hi[a].max(k.0[a]);
+            }
+        }
+        (lo[0] <= hi[0]).then_some((VoxelKey(lo), VoxelKey(hi)))
+    }
+
+    /// A grid of the same shape with every value mapped through `f`.
+    pub fn map<W: Copy + Default>(&self, mut f: impl FnMut(&V) -> W) -> Grid<W> {
+        let mut out = Grid {
+            resolution: self.resolution,
+            bricks: FxHashMap::default(),
+        };
+        out.bricks.reserve(self.bricks.len());
+        for (k, b) in &self.bricks {
+            let nb = out.brick_or_insert(*k);
+            for (s, v) in b.iter() {
+                nb.get_or_insert(s, f(v));
+            }
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::random::Rng;
+
+    #[test]
+    fn keys_round_trip_through_bricks() {
+        let mut rng = Rng::new(3);
+        for _ in 0..10_000 {
+            let k = VoxelKey([0; 3].map(|_| (rng.next_u64() % 2001) as i32 - 1000));
+            assert_eq!(k.brick().voxel(k.slot()), k);
+            for a in 0..3 {
+                assert_eq!(k.brick().0[a], k.0[a].div_euclid(8));
+            }
+        }
+    }
+
+    #[test]
+    fn from_point_uses_floor() {
+        let r = 0.1;
+        assert_eq!(
+            VoxelKey::from_point([0.0, -1e-12, 0.35], r),
+            VoxelKey([0, -1, 3])
+        );
+        let c = VoxelKey([-4, 2, 9]).center(r);
+        assert_eq!(VoxelKey::from_point(c, r), VoxelKey([-4, 2, 9]));
+    }
+
+    #[test]
+    fn grid_matches_a_plain_map() {
+        let mut rng = Rng::new(11);
+        let mut grid: Grid<u32> = Grid::new(0.02).unwrap();
+        let mut reference = std::collections::BTreeMap::new();
+        for i in 0..5000u32 {
+            let k = VoxelKey([0; 3].map(|_| (rng.next_u64() % 64) as i32 - 32));
+            grid.insert(k, i);
+            reference.insert(k, i);
+        }
+        assert_eq!(grid.len(), reference.len());
+        let mut got: Vec<(VoxelKey, u32)> = grid.iter().map(|(k, v)| (k, *v)).collect();
+        got.sort();
+        assert_eq!(got, reference.into_iter().collect::<Vec<_>>());
+        let (lo, hi) = grid.key_bounds().unwrap();
+        assert!(lo.0.iter().all(|&v| v >= -32) && hi.0.iter().all(|&v| v < 32));
+        assert!(Grid::<f32>::new(0.0).is_err());
+        assert!(Grid::<f32>::new(f64::NAN).is_err());
+    }
+
+    #[test]
+    fn mask_iteration_in_order() {
+        let mut m = [0u64; 8];
+        for s in [0, 5, 63, 64, 300, 511] {
+            mask_set(&mut m, s);
+        }
+        assert_eq!(
+            mask_slots(&m).collect::<Vec<_>>(),
+            vec![0, 5, 63, 64, 300, 511]
+        );
+    }
+}

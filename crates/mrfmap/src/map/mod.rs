@@ -1,0 +1,100 @@
+//! Maps: the sparse bricked voxel store ([`Grid`]) and the finished, engine-independent
+//! [`Map`] that every output (files, export, queries, evaluation) reads.
+//!
+//! Engines keep whatever per-voxel state they need in their own `Grid`; when asked they
+//! produce a `Map` of occupancy probabilities (and variances where the engine has them).
+
+mod file;
+mod grid;
+
+pub use grid::{
+    BRICK_EDGE, BRICK_VOXELS, Brick, BrickKey, Grid, SlotMask, VoxelKey, mask_has, mask_set,
+    mask_slots,
+};
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+/// The state of one voxel in a finished map.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct MapVoxel {
+    /// Probability that the voxel is occupied.
+    pub occupancy: f32,
+    /// Variance of the occupancy estimate (0 when the engine has none).
+    pub variance: f32,
+}
+
+/// Probability above which a voxel counts as occupied (OctoMap's default).
+pub const OCCUPIED_THRESHOLD: f32 = 0.5;
+
+/// A finished occupancy map: what engines produce and outputs consume.
+///
+/// ```
+/// use mrfmap::map::{Map, MapVoxel, VoxelKey};
+/// let mut map = Map::new("logodds", 0.05).unwrap();
+/// map.voxels.insert(VoxelKey([0, 0, 0]), MapVoxel { occupancy: 0.9, variance: 0.0 });
+/// map.voxels.insert(VoxelKey([1, 0, 0]), MapVoxel { occupancy: 0.2, variance: 0.0 });
+/// assert_eq!(map.occupied_count(), 1);
+/// assert_eq!(map.occupancy_at([0.01, 0.01, 0.01]), Some(0.9));
+/// ```
+#[derive(Clone, Debug)]
+pub struct Map {
+    /// Engine that built the map (`logodds`, ...).
+    pub engine: String,
+    /// Engine parameters, for the record (`p_hit = 0.7`, ...).
+    pub params: BTreeMap<String, String>,
+    /// True when `variance` is meaningful.
+    pub has_variance: bool,
+    /// The voxels.
+    pub voxels: Grid<MapVoxel>,
+}
+
+impl Map {
+    /// An empty map.
+    pub fn new(engine: &str, resolution: f64) -> crate::Result<Self> {
+        Ok(Map {
+            engine: engine.into(),
+            params: BTreeMap::new(),
+            has_variance: false,
+            voxels: Grid::new(resolution)?,
+        })
+    }
+
+    /// Voxel edge in metres.
+    pub fn resolution(&self) -> f64 {
+        self.voxels.resolution()
+    }
+
+    /// Occupancy probability at a world point; `None` where the map has no information.
+    pub fn occupancy_at(&self, p: [f64; 3]) -> Option<f32> {
+        self.voxels
+            .get(VoxelKey::from_point(p, self.resolution()))
+            .map(|v| v.occupancy)
+    }
+
+    /// Number of voxels with occupancy above [`OCCUPIED_THRESHOLD`].
+    pub fn occupied_count(&self) -> usize {
+        self.voxels
+            .iter()
+            .filter(|(_, v)| v.occupancy > OCCUPIED_THRESHOLD)
+            .count()
+    }
+
+    /// World-space bounds `(min corner, max corner)` of the allocated voxels.
+    pub fn bounds(&self) -> Option<([f64; 3], [f64; 3])> {
+        let r = self.resolution();
+        self.voxels
+            .key_bounds()
+            .map(|(lo, hi)| (lo.0.map(|i| i as f64 * r), hi.0.map(|i| (i + 1) as f64 * r)))
+    }
+
+    /// Saves in the binary map format (atomically: temp file + rename).
+    pub fn save(&self, path: &Path) -> crate::Result<()> {
+        file::save(self, path)
+    }
+
+    /// Loads a map saved by [`Map::save`]; corrupt, truncated or foreign files give a clear error.
+    pub fn load(path: &Path) -> crate::Result<Self> {
+        file::load(path)
+    }
+}

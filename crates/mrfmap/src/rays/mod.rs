@@ -1,0 +1,253 @@
+//! Rays: from a frame's pixels to world-space rays, and from rays to the voxels they cross.
+//!
+//! [`FrameRays`] turns each valid depth pixel into a [`PixelRay`] (origin, unit direction,
+//! measured range, and the `cz` that converts range to z-depth for the noise model).
+//! [`RayLimits`] applies the user's max range and bounding box, and [`traverse`] walks the
+//! voxels of the resulting segment. Every engine consumes rays through these three pieces.
+
+mod traversal;
+
+pub use traversal::{Crossing, Traversal, traverse};
+
+use nalgebra::Matrix3;
+
+use crate::frames::Frame;
+
+/// A world-space ray through one valid depth pixel.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct PixelRay {
+    /// Pixel column.
+    pub u: u32,
+    /// Pixel row.
+    pub v: u32,
+    /// Camera centre in the world frame.
+    pub origin: [f64; 3],
+    /// Unit direction in the world frame.
+    pub dir: [f64; 3],
+    /// Range (metres along `dir`) to the measured surface.
+    pub range: f64,
+    /// z component of the unit ray in the camera frame: z-depth = range * cz.
+    pub cz: f64,
+}
+
+/// Ray generator for one frame: precomputes the rotation once, then yields rays row by row
+/// (rows are the unit of parallel work).
+pub struct FrameRays<'a> {
+    frame: &'a Frame,
+    rotation: Matrix3<f64>,
+    origin: [f64; 3],
+}
+
+impl<'a> FrameRays<'a> {
+    /// Rays of `frame`.
+    pub fn new(frame: &'a Frame) -> Self {
+        let t = frame.pose.translation.vector;
+        FrameRays {
+            frame,
+            rotation: *frame.pose.rotation.to_rotation_matrix().matrix(),
+            origin: [t.x, t.y, t.z],
+        }
+    }
+
+    /// Number of image rows.
+    pub fn rows(&self) -> u32 {
+        self.frame.depth.height()
+    }
+
+    /// Rays of the valid pixels of row `v`, left to right.
+    pub fn row(&self, v: u32) -> impl Iterator<Item = PixelRay> + '_ {
+        let cam = &self.frame.camera;
+        self.frame
+            .depth
+            .row(v)
+            .iter()
+            .enumerate()
+            .filter_map(move |(u, &z)| {
+                if !(z > 0.0 && z.is_finite()) {
+                    return None;
+                }
+                let u = u as u32;
+                let ray = cam.pixel_ray(u as f64, v as f64);
+                let norm = ray.norm();
+                let d = self.rotation * (ray / norm);
+                Some(PixelRay {
+                    u,
+                    v,
+                    origin: self.origin,
+                    dir: [d.x, d.y, d.z],
+                    range: z as f64 * norm,
+                    cz: 1.0 / norm,
+                })
+            })
+    }
+
+    /// The measured surface point of a ray in world coordinates.
+    pub fn endpoint(ray: &PixelRay) -> [f64; 3] {
+        [0, 1, 2].map(|a| ray.origin[a] + ray.range * ray.dir[a])
+    }
+}
+
+/// An axis-aligned box in world coordinates.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Aabb {
+    /// Lower corner.
+    pub min: [f64; 3],
+    /// Upper corner.
+    pub max: [f64; 3],
+}
+
+impl Aabb {
+    /// A box; fails unless `min < max` on every axis and all values are finite.
+    pub fn new(min: [f64; 3], max: [f64; 3]) -> crate::Result<Self> {
+        if min.iter().chain(max.iter()).any(|v| !v.is_finite()) || (0..3).any(|a| min[a] >= max[a])
+        {
+            return Err(crate::Error::Invalid(format!(
+                "bounds need min < max on every axis, got {min:?} and {max:?}"
+            )));
+        }
+        Ok(Aabb { min, max })
+    }
+
+    /// Parses `XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX`.
+    ///
+    /// ```
+    /// let b = mrfmap::rays::Aabb::parse("-2,-2,0,2,2,3").unwrap();
+    /// assert_eq!(b.max, [2.0, 2.0, 3.0]);
+    /// assert!(mrfmap::rays::Aabb::parse("1,2,3").is_err());
+    /// ```
+    pub fn parse(text: &str) -> crate::Result<Self> {
+        let v: Vec<f64> = text
+            .split(',')
+            .map(|s| s.trim().parse::<f64>())
+            .collect::<Result<_, _>>()
+            .map_err(|e| crate::Error::Invalid(format!("bounds {text:?}: {e}")))?;
+        if v.len() != 6 {
+            return Err(crate::Error::Invalid(format!(
+                "bounds {text:?}: need 6 numbers XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX"
+            )));
+        }
+        Aabb::new([v[0], v[1], v[2]], [v[3], v[4], v[5]])
+    }
+
+    /// Is `p` inside (boundary included)?
+    pub fn contains(&self, p: [f64; 3]) -> bool {
+        (0..3).all(|a| p[a] >= self.min[a] && p[a] <= self.max[a])
+    }
+
+    /// The part `[a, b]` of `[s0, s1]` where `origin + s dir` is inside the box (slab method).
+    pub fn clip(&self, origin: [f64; 3], dir: [f64; 3], s0: f64, s1: f64) -> Option<(f64, f64)> {
+        let (mut a, mut b) = (s0, s1);
+        for k in 0..3 {
+            if dir[k] == 0.0 {
+                if origin[k] < self.min[k] || origin[k] > self.max[k] {
+                    return None;
+                }
+                continue;
+            }
+            let t0 = (self.min[k] - origin[k]) / dir[k];
+            let t1 = (self.max[k] - origin[k]) / dir[k];
+            let (lo, hi) = if t0 < t1 { (t0, t1) } else { (t1, t0) };
+            a = a.max(lo);
+            b = b.min(hi);
+        }
+        (a < b).then_some((a, b))
+    }
+}
+
+/// What part of each ray an engine may use: the user's max range and bounding box.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct RayLimits {
+    /// Readings farther than this are cut here and carry no surface (OctoMap's `maxrange`).
+    pub max_range: Option<f64>,
+    /// Only this box is mapped.
+    pub bounds: Option<Aabb>,
+}
+
+/// The usable part of a ray after [`RayLimits`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Segment {
+    /// Start range.
+    pub start: f64,
+    /// End range.
+    pub end: f64,
+    /// True when the segment ends at the measured surface (not cut by max range or bounds).
+    pub hits_surface: bool,
+}
+
+impl RayLimits {
+    /// Checks the limits themselves.
+    pub fn validate(&self) -> crate::Result<()> {
+        if let Some(m) = self.max_range {
+            if !(m > 0.0) {
+                return Err(crate::Error::Invalid(format!(
+                    "max range must be positive, got {m}"
+                )));
+            }
+        }
+        Ok(())
+    }
+
+    /// The segment of `ray` from the camera to its surface (or `extra` metres past it, for
+    /// engines that model the space behind a surface) that the limits allow.
+    ///
+    /// ```
+    /// use mrfmap::rays::{RayLimits, PixelRay};
+    /// let ray = PixelRay { u: 0, v: 0, origin: [0.0; 3], dir: [1.0, 0.0, 0.0], range: 5.0, cz: 1.0 };
+    /// let limits = RayLimits { max_range: Some(3.0), bounds: None };
+    /// let seg = limits.segment(&ray, 0.0).unwrap();
+    /// assert_eq!((seg.start, seg.end, seg.hits_surface), (0.0, 3.0, false));
+    /// ```
+    pub fn segment(&self, ray: &PixelRay, extra: f64) -> Option<Segment> {
+        let mut seg = Segment {
+            start: 0.0,
+            end: ray.range + extra,
+            hits_surface: true,
+        };
+        if let Some(m) = self.max_range {
+            if ray.range > m {
+                seg.end = m;
+                seg.hits_surface = false;
+            } else {
+                seg.end = seg.end.min(m.max(ray.range));
+            }
+        }
+        if let Some(b) = &self.bounds {
+            let (a, e) = b.clip(ray.origin, ray.dir, seg.start, seg.end)?;
+            if e < ray.range {
+                seg.hits_surface = false;
+            }
+            seg.start = a;
+            seg.end = e;
+        }
+        Some(seg)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bounds_clip_and_drop_surfaces_outside() {
+        let b = Aabb::new([0.0, -1.0, -1.0], [2.0, 1.0, 1.0]).unwrap();
+        let limits = RayLimits {
+            max_range: None,
+            bounds: Some(b),
+        };
+        let ray = |range| PixelRay {
+            u: 0,
+            v: 0,
+            origin: [-1.0, 0.0, 0.0],
+            dir: [1.0, 0.0, 0.0],
+            range,
+            cz: 1.0,
+        };
+        let s = limits.segment(&ray(2.0), 0.0).unwrap();
+        assert_eq!((s.start, s.end, s.hits_surface), (1.0, 2.0, true));
+        let s = limits.segment(&ray(5.0), 0.0).unwrap();
+        assert_eq!((s.start, s.end, s.hits_surface), (1.0, 3.0, false));
+        assert!(limits.segment(&ray(0.5), 0.0).is_none());
+        assert!(Aabb::parse("0,0,0,1,1").is_err());
+        assert!(Aabb::parse("0,0,0,-1,1,1").is_err());
+    }
+}

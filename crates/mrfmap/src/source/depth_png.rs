@@ -1,0 +1,130 @@
+//! 16-bit PNG depth images (TUM / ICL-NUIM: value = z-depth * depth_scale, 0 = no return).
+
+use std::fs::File;
+use std::io::BufReader;
+use std::path::Path;
+
+use crate::error::{Error, Result};
+use crate::frames::DepthImage;
+
+/// Reads a 16-bit grayscale depth PNG into metres, checking its size against the camera's.
+///
+/// 8-bit, colour or paletted PNGs are refused with a message naming the file: silently
+/// reading them as depth would build a wrong map.
+pub fn read_depth_png(path: &Path, depth_scale: f64, expected: (u32, u32)) -> Result<DepthImage> {
+    let file = File::open(path).map_err(|e| Error::io(path, e))?;
+    let bad = |m: String| Error::file(path, m);
+    let mut reader = png::Decoder::new(BufReader::new(file))
+        .read_info()
+        .map_err(|e| bad(format!("unreadable PNG: {e}")))?;
+    let info = reader.info();
+    let (width, height) = (info.width, info.height);
+    if info.bit_depth != png::BitDepth::Sixteen || info.color_type != png::ColorType::Grayscale {
+        return Err(bad(format!(
+            "expected a 16-bit grayscale depth PNG, found {:?}-bit {:?}",
+            info.bit_depth as u8, info.color_type
+        )));
+    }
+    if (width, height) != expected {
+        return Err(bad(format!(
+            "image is {width}x{height} but camera.toml says {}x{}",
+            expected.0, expected.1
+        )));
+    }
+    let mut buf = vec![
+        0u8;
+        reader
+            .output_buffer_size()
+            .ok_or_else(|| bad("image too large".into()))?
+    ];
+    reader
+        .next_frame(&mut buf)
+        .map_err(|e| bad(format!("unreadable PNG: {e}")))?;
+    let inv = (1.0 / depth_scale) as f32;
+    let data = buf
+        .chunks_exact(2)
+        .take(width as usize * height as usize)
+        .map(|b| u16::from_be_bytes([b[0], b[1]]) as f32 * inv)
+        .collect();
+    Ok(DepthImage::from_vec(width, height, data).expect("size checked above"))
+}
+
+/// Writes metres as a 16-bit depth PNG (atomically). Depths that do not fit in 16 bits
+/// at this scale, and invalid ones, are written as 0 (no return).
+pub fn write_depth_png(path: &Path, depth: &DepthImage, depth_scale: f64) -> Result<()> {
+    let mut bytes = Vec::with_capacity(depth.data().len() * 2);
+    for &z in depth.data() {
+        let q = (z as f64 * depth_scale).round();
+        let q = if z > 0.0 && q.is_finite() && q <= u16::MAX as f64 {
+            q as u16
+        } else {
+            0
+        };
+        bytes.extend_from_slice(&q.to_be_bytes());
+    }
+    crate::atomic_file::write_atomic(path, |w| {
+        let mut enc = png::Encoder::new(w, depth.width(), depth.height());
+        enc.set_color(png::ColorType::Grayscale);
+        enc.set_depth(png::BitDepth::Sixteen);
+        enc.set_compression(png::Compression::Fast);
+        let mut writer = enc.write_header().map_err(std::io::Error::other)?;
+        writer
+            .write_image_data(&bytes)
+            .map_err(std::io::Error::other)?;
+        writer.finish().map_err(std::io::Error::other)
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tmp(name: &str) -> std::path::PathBuf {
+        let dir = std::env::temp_dir().join(format!("mrfmap-png-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        dir.join(name)
+    }
+
+    #[test]
+    fn round_trip_quantises_to_scale() {
+        let mut img = DepthImage::new(5, 3);
+        img.set(0, 0, 1.23456);
+        img.set(4, 2, 6.5);
+        img.set(2, 1, 20.0); // beyond 65535 / 5000 m: stored as no return
+        let p = tmp("rt.png");
+        write_depth_png(&p, &img, 5000.0).unwrap();
+        let back = read_depth_png(&p, 5000.0, (5, 3)).unwrap();
+        assert!((back.get(0, 0).unwrap() - 1.2346).abs() < 1e-6);
+        assert_eq!(back.get(4, 2), Some(6.5));
+        assert_eq!(back.get(2, 1), None);
+        let e = read_depth_png(&p, 5000.0, (640, 480))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("rt.png") && e.contains("5x3") && e.contains("640x480"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn refuses_8_bit_and_garbage() {
+        let p = tmp("eight.png");
+        let f = std::fs::File::create(&p).unwrap();
+        let mut enc = png::Encoder::new(f, 2, 2);
+        enc.set_color(png::ColorType::Rgb);
+        enc.set_depth(png::BitDepth::Eight);
+        enc.write_header()
+            .unwrap()
+            .write_image_data(&[0; 12])
+            .unwrap();
+        let e = read_depth_png(&p, 5000.0, (2, 2)).unwrap_err().to_string();
+        assert!(e.contains("eight.png") && e.contains("16-bit"), "{e}");
+        let g = tmp("garbage.png");
+        std::fs::write(&g, b"not a png at all").unwrap();
+        let e = read_depth_png(&g, 5000.0, (2, 2)).unwrap_err().to_string();
+        assert!(
+            e.contains("garbage.png") && e.contains("unreadable PNG"),
+            "{e}"
+        );
+    }
+}

@@ -1,0 +1,14 @@
+//! Sources: where frames come from — datasets on disk and the analytic scene simulator.
+//!
+//! [`Dataset`] reads the TUM / ICL-NUIM layout; [`Scene`] describes an analytic world and
+//! [`simulate`] renders it into that same layout, so simulated and real data take one path.
+
+mod dataset;
+mod depth_png;
+mod scene;
+mod simulate;
+
+pub use dataset::{Dataset, DatasetOptions, FrameInfo};
+pub use depth_png::{read_depth_png, write_depth_png};
+pub use scene::{Scene, Shape};
+pub use simulate::{SimulationSummary, simulate};

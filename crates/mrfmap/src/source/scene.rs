@@ -1,0 +1,451 @@
+//! Analytic scenes: solid boxes, spheres and vertical cylinders seen by a pinhole depth
+//! camera from listed or orbiting viewpoints. They give exact depth images and exact
+//! ground-truth occupancy ("is this point inside?") for tests and evaluation.
+//!
+//! The scene file format is fixed (README, "Scene files"); unknown keys are errors.
+
+use std::path::Path;
+
+use nalgebra::Vector3;
+use serde::Deserialize;
+
+use crate::error::{Error, Result, parse_toml, read_text};
+use crate::frames::{Camera, DepthImage, NoiseModel, Pose, look_at};
+use crate::random::Rng;
+
+/// A solid primitive.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Shape {
+    /// Axis-aligned box.
+    Box {
+        /// Lower corner.
+        min: [f64; 3],
+        /// Upper corner.
+        max: [f64; 3],
+    },
+    /// Ball.
+    Sphere {
+        /// Centre.
+        center: [f64; 3],
+        /// Radius.
+        radius: f64,
+    },
+    /// Vertical (world z) cylinder with flat caps.
+    Cylinder {
+        /// Axis position in x, y.
+        center: [f64; 2],
+        /// Radius.
+        radius: f64,
+        /// Bottom and top z.
+        z: [f64; 2],
+    },
+}
+
+/// Interval of `t` where `o + t d` lies within `[lo, hi]` on one axis (`None` if never).
+fn slab(o: f64, d: f64, lo: f64, hi: f64) -> Option<(f64, f64)> {
+    if d == 0.0 {
+        return (o >= lo && o <= hi).then_some((f64::NEG_INFINITY, f64::INFINITY));
+    }
+    let (a, b) = ((lo - o) / d, (hi - o) / d);
+    Some(if a < b { (a, b) } else { (b, a) })
+}
+
+/// Interval where a quadratic `a t^2 + b t + c <= 0` (with `a >= 0`).
+fn quadratic_inside(a: f64, b: f64, c: f64) -> Option<(f64, f64)> {
+    if a == 0.0 {
+        return (c <= 0.0).then_some((f64::NEG_INFINITY, f64::INFINITY));
+    }
+    let disc = b * b - 4.0 * a * c;
+    if disc < 0.0 {
+        return None;
+    }
+    let q = disc.sqrt();
+    Some(((-b - q) / (2.0 * a), (-b + q) / (2.0 * a)))
+}
+
+fn intersect(a: Option<(f64, f64)>, b: Option<(f64, f64)>) -> Option<(f64, f64)> {
+    let (a, b) = (a?, b?);
+    let i = (a.0.max(b.0), a.1.min(b.1));
+    (i.0 <= i.1).then_some(i)
+}
+
+impl Shape {
+    /// Is `p` inside the solid (boundary included)?
+    pub fn contains(&self, p: [f64; 3]) -> bool {
+        match *self {
+            Shape::Box { min, max } => (0..3).all(|a| p[a] >= min[a] && p[a] <= max[a]),
+            Shape::Sphere { center, radius } => {
+                (0..3).map(|a| (p[a] - center[a]).powi(2)).sum::<f64>() <= radius * radius
+            }
+            Shape::Cylinder { center, radius, z } => {
+                (p[0] - center[0]).powi(2) + (p[1] - center[1]).powi(2) <= radius * radius
+                    && p[2] >= z[0]
+                    && p[2] <= z[1]
+            }
+        }
+    }
+
+    /// The interval of `t` where `o + t d` is inside the solid.
+    fn interval(&self, o: &Vector3<f64>, d: &Vector3<f64>) -> Option<(f64, f64)> {
+        match *self {
+            Shape::Box { min, max } => {
+                let x = slab(o.x, d.x, min[0], max[0]);
+                intersect(
+                    intersect(x, slab(o.y, d.y, min[1], max[1])),
+                    slab(o.z, d.z, min[2], max[2]),
+                )
+            }
+            Shape::Sphere { center, radius } => {
+                let oc = o - Vector3::from(center);
+                quadratic_inside(d.dot(d), 2.0 * d.dot(&oc), oc.dot(&oc) - radius * radius)
+            }
+            Shape::Cylinder { center, radius, z } => {
+                let (ox, oy) = (o.x - center[0], o.y - center[1]);
+                let side = quadratic_inside(
+                    d.x * d.x + d.y * d.y,
+                    2.0 * (d.x * ox + d.y * oy),
+                    ox * ox + oy * oy - radius * radius,
+                );
+                intersect(side, slab(o.z, d.z, z[0], z[1]))
+            }
+        }
+    }
+
+    /// Smallest `t >= 0` where the ray `o + t d` is inside the solid (0 if it starts inside).
+    pub fn first_hit(&self, o: &Vector3<f64>, d: &Vector3<f64>) -> Option<f64> {
+        let (lo, hi) = self.interval(o, d)?;
+        (hi >= 0.0).then_some(lo.max(0.0))
+    }
+}
+
+/// A simulated world: camera, optional noise model, solids and viewpoints.
+#[derive(Clone, Debug)]
+pub struct Scene {
+    /// The simulated depth camera (with `min_depth` / `max_depth`).
+    pub camera: Camera,
+    /// Noise added to `depth/`; `None` renders noise-free depth in both folders.
+    pub noise: Option<NoiseModel>,
+    /// The solids.
+    pub shapes: Vec<Shape>,
+    /// Camera poses, one per rendered frame.
+    pub views: Vec<Pose>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct SceneFile {
+    camera: Camera,
+    noise: Option<toml::Value>,
+    #[serde(rename = "box", default)]
+    boxes: Vec<BoxDef>,
+    #[serde(rename = "sphere", default)]
+    spheres: Vec<SphereDef>,
+    #[serde(rename = "cylinder", default)]
+    cylinders: Vec<CylinderDef>,
+    #[serde(rename = "view", default)]
+    views: Vec<ViewDef>,
+    orbit: Option<OrbitDef>,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct BoxDef {
+    min: [f64; 3],
+    max: [f64; 3],
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct SphereDef {
+    center: [f64; 3],
+    radius: f64,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct CylinderDef {
+    center: [f64; 2],
+    radius: f64,
+    z: [f64; 2],
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ViewDef {
+    eye: [f64; 3],
+    target: [f64; 3],
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct OrbitDef {
+    center: [f64; 3],
+    radius: f64,
+    height: f64,
+    views: u32,
+}
+
+impl Scene {
+    /// Reads a scene file.
+    pub fn load(path: &Path) -> Result<Self> {
+        Self::from_toml(&read_text(path)?, path)
+    }
+
+    /// Parses scene TOML; `origin` names the file in errors.
+    ///
+    /// ```
+    /// let text = r#"
+    /// [camera]
+    /// fx = 100.0
+    /// fy = 100.0
+    /// cx = 31.5
+    /// cy = 23.5
+    /// width = 64
+    /// height = 48
+    /// depth_scale = 5000.0
+    /// [[box]]
+    /// min = [-1.0, -1.0, -1.0]
+    /// max = [1.0, 1.0, 1.0]
+    /// [[view]]
+    /// eye = [3.0, 0.0, 0.0]
+    /// target = [0.0, 0.0, 0.0]
+    /// "#;
+    /// let scene = mrfmap::source::Scene::from_toml(text, "inline".as_ref()).unwrap();
+    /// let depth = scene.render(&scene.views[0]);
+    /// assert!((depth.get(32, 24).unwrap() - 2.0).abs() < 1e-6);
+    /// assert!(scene.contains([0.5, 0.5, 0.5]));
+    /// ```
+    pub fn from_toml(text: &str, origin: &Path) -> Result<Self> {
+        let f: SceneFile = parse_toml(text, origin)?;
+        let bad = |m: String| Error::file(origin, m);
+        let noise = f
+            .noise
+            .map(|v| NoiseModel::from_value(v, origin))
+            .transpose()?;
+        if let Some(n) = &noise {
+            n.check_camera(&f.camera)
+                .map_err(|m| bad(format!("[noise]: {m}")))?;
+        }
+        let mut shapes = Vec::new();
+        for (i, b) in f.boxes.iter().enumerate() {
+            if (0..3).any(|a| !(b.min[a] < b.max[a])) {
+                return Err(bad(format!("box {i}: need min < max on every axis")));
+            }
+            shapes.push(Shape::Box {
+                min: b.min,
+                max: b.max,
+            });
+        }
+        for (i, s) in f.spheres.iter().enumerate() {
+            if !(s.radius > 0.0) {
+                return Err(bad(format!("sphere {i}: radius must be positive")));
+            }
+            shapes.push(Shape::Sphere {
+                center: s.center,
+                radius: s.radius,
+            });
+        }
+        for (i, c) in f.cylinders.iter().enumerate() {
+            if !(c.radius > 0.0 && c.z[0] < c.z[1]) {
+                return Err(bad(format!(
+                    "cylinder {i}: need radius > 0 and z[0] < z[1]"
+                )));
+            }
+            shapes.push(Shape::Cylinder {
+                center: c.center,
+                radius: c.radius,
+                z: c.z,
+            });
+        }
+        let mut views = Vec::new();
+        for (i, v) in f.views.iter().enumerate() {
+            views.push(
+                look_at(Vector3::from(v.eye), Vector3::from(v.target))
+                    .map_err(|m| bad(format!("view {i}: {m}")))?,
+            );
+        }
+        if let Some(o) = &f.orbit {
+            if !views.is_empty() {
+                return Err(bad(
+                    "give either [[view]] entries or an [orbit], not both".into()
+                ));
+            }
+            if o.views == 0 || !(o.radius > 0.0) {
+                return Err(bad("[orbit]: need views >= 1 and radius > 0".into()));
+            }
+            for k in 0..o.views {
+                let a = std::f64::consts::TAU * k as f64 / o.views as f64;
+                let eye = Vector3::new(
+                    o.center[0] + o.radius * a.cos(),
+                    o.center[1] + o.radius * a.sin(),
+                    o.height,
+                );
+                views.push(
+                    look_at(eye, Vector3::from(o.center))
+                        .map_err(|m| bad(format!("[orbit] view {k}: {m}")))?,
+                );
+            }
+        }
+        if views.is_empty() {
+            return Err(bad(
+                "no viewpoints: add [[view]] entries or an [orbit]".into()
+            ));
+        }
+        Ok(Scene {
+            camera: f.camera,
+            noise,
+            shapes,
+            views,
+        })
+    }
+
+    /// Ground-truth occupancy: is `p` inside any solid?
+    pub fn contains(&self, p: [f64; 3]) -> bool {
+        self.shapes.iter().any(|s| s.contains(p))
+    }
+
+    /// Exact z-depth image from `pose`; pixels whose depth is outside the camera's
+    /// `[min_depth, max_depth]` (or that see nothing) are 0.
+    pub fn render(&self, pose: &Pose) -> DepthImage {
+        use rayon::prelude::*;
+        let cam = &self.camera;
+        let rot = pose.rotation.to_rotation_matrix();
+        let eye = pose.translation.vector;
+        let (min_z, max_z) = (
+            cam.min_depth.unwrap_or(0.0),
+            cam.max_depth.unwrap_or(f64::INFINITY),
+        );
+        let w = cam.width as usize;
+        let mut data = vec![0f32; cam.pixel_count()];
+        data.par_chunks_mut(w).enumerate().for_each(|(v, row)| {
+            for (u, out) in row.iter_mut().enumerate() {
+                // With the camera ray scaled to z = 1, the ray parameter is the z-depth.
+                let d = rot * cam.pixel_ray(u as f64, v as f64);
+                let z = self
+                    .shapes
+                    .iter()
+                    .filter_map(|s| s.first_hit(&eye, &d))
+                    .fold(f64::INFINITY, f64::min);
+                if z > 0.0 && z >= min_z && z <= max_z && z.is_finite() {
+                    *out = z as f32;
+                }
+            }
+        });
+        DepthImage::from_vec(cam.width, cam.height, data).expect("sized from camera")
+    }
+
+    /// `truth` with the scene's noise model applied (per patch when it has patches):
+    /// `z + bias(z) + std(z) N(0, 1)`. Deterministic in `(seed, view)` whatever the thread count.
+    pub fn add_noise(&self, truth: &DepthImage, seed: u64, view: usize) -> DepthImage {
+        use rayon::prelude::*;
+        let Some(noise) = &self.noise else {
+            return truth.clone();
+        };
+        let w = truth.width() as usize;
+        let mut data = truth.data().to_vec();
+        data.par_chunks_mut(w).enumerate().for_each(|(v, row)| {
+            let mut rng = Rng::stream(seed, view as u64, v as u64);
+            for (u, z) in row.iter_mut().enumerate() {
+                let n = rng.normal(); // drawn for every pixel so streams do not depend on validity
+                if *z > 0.0 {
+                    let (bias, std) = noise.bias_std(u as u32, v as u32, *z as f64);
+                    let m = *z as f64 + bias + std * n;
+                    *z = if m > 0.0 { m as f32 } else { 0.0 };
+                }
+            }
+        });
+        DepthImage::from_vec(truth.width(), truth.height(), data).expect("same size")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Marching reference for `first_hit`: small steps along the ray, first inside sample.
+    fn marched(s: &Shape, o: &Vector3<f64>, d: &Vector3<f64>, t_max: f64, h: f64) -> Option<f64> {
+        let mut t = 0.0;
+        while t <= t_max {
+            let p = o + d * t;
+            if s.contains([p.x, p.y, p.z]) {
+                return Some(t);
+            }
+            t += h;
+        }
+        None
+    }
+
+    #[test]
+    fn first_hit_agrees_with_marching() {
+        let shapes = [
+            Shape::Box {
+                min: [-0.5, -0.3, 0.0],
+                max: [0.4, 0.6, 0.8],
+            },
+            Shape::Sphere {
+                center: [0.1, -0.2, 0.3],
+                radius: 0.45,
+            },
+            Shape::Cylinder {
+                center: [0.2, 0.1],
+                radius: 0.25,
+                z: [-0.2, 0.7],
+            },
+        ];
+        let mut rng = Rng::new(21);
+        let h = 1e-4;
+        for s in &shapes {
+            for _ in 0..300 {
+                let o = Vector3::new(
+                    rng.range(-2.0, 2.0),
+                    rng.range(-2.0, 2.0),
+                    rng.range(-2.0, 2.0),
+                );
+                let target = Vector3::new(
+                    rng.range(-0.6, 0.6),
+                    rng.range(-0.6, 0.6),
+                    rng.range(-0.4, 0.9),
+                );
+                let d = (target - o).normalize();
+                let exact = s.first_hit(&o, &d).filter(|t| *t <= 5.0);
+                let reference = marched(s, &o, &d, 5.0, h);
+                match (exact, reference) {
+                    (Some(a), Some(b)) => assert!((a - b).abs() <= h, "{s:?}: {a} vs {b}"),
+                    (None, None) => {}
+                    // Grazing rays may slip between samples.
+                    (Some(a), None) => {
+                        let (lo, hi) = s.interval(&o, &d).unwrap();
+                        assert!(
+                            hi - lo < 2.0 * h || a > 5.0 - h,
+                            "{s:?}: missed by marching"
+                        );
+                    }
+                    (None, Some(b)) => panic!("{s:?}: exact missed a hit at {b}"),
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn orbit_and_errors() {
+        let base = "[camera]\nfx = 50.0\nfy = 50.0\ncx = 15.5\ncy = 11.5\nwidth = 32\nheight = 24\ndepth_scale = 5000.0\n";
+        let orbit = format!(
+            "{base}[orbit]\ncenter = [0.0, 0.0, 0.5]\nradius = 2.0\nheight = 1.5\nviews = 4\n"
+        );
+        let scene = Scene::from_toml(&orbit, Path::new("s.toml")).unwrap();
+        assert_eq!(scene.views.len(), 4);
+        let first = scene.views[0].translation.vector;
+        assert!((first - Vector3::new(2.0, 0.0, 1.5)).norm() < 1e-12);
+        let e = Scene::from_toml(
+            &format!("{orbit}[[pyramid]]\nsize = 1\n"),
+            Path::new("s.toml"),
+        )
+        .unwrap_err();
+        assert!(
+            e.to_string().contains("s.toml") && e.to_string().contains("pyramid"),
+            "{e}"
+        );
+        let e = Scene::from_toml(base, Path::new("s.toml")).unwrap_err();
+        assert!(e.to_string().contains("no viewpoints"), "{e}");
+    }
+}

@@ -1,1 +1,65 @@
-fn main() {}
+//! The `mrfmap` command: a thin layer over the `mrfmap` library.
+//!
+//! Each subcommand lives in `commands/`; this file parses arguments, sets up logging and
+//! threads, and turns errors into one clear line and a non-zero exit code.
+
+mod commands;
+mod progress;
+
+use clap::{Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(name = "mrfmap", version, about = "Probabilistic 3D occupancy maps from depth cameras")]
+struct Cli {
+    /// No progress bars and no log lines below warnings.
+    #[arg(long, short, global = true)]
+    quiet: bool,
+    /// Worker threads (default: all cores).
+    #[arg(long, global = true, value_parser = clap::value_parser!(u32).range(1..))]
+    threads: Option<u32>,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Build a map from a dataset.
+    Build(commands::build::Args),
+    /// Export a map to PLY.
+    Export(commands::export::Args),
+    /// Describe a map file.
+    Info(commands::info::Args),
+    /// Render an analytic scene file to a dataset.
+    Simulate(commands::simulate::Args),
+    /// Simulate the bundled room scene, build maps with every engine, export PLY.
+    Demo(commands::demo::Args),
+    /// Time map building per frame at several resolutions (release builds only make sense).
+    Bench(commands::bench::Args),
+}
+
+fn main() {
+    let cli = Cli::parse();
+    let default_level = if cli.quiet { "warn" } else { "info" };
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default_level));
+    tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).with_target(false).init();
+    progress::set_quiet(cli.quiet);
+
+    let result = (|| {
+        if let Some(n) = cli.threads {
+            rayon::ThreadPoolBuilder::new().num_threads(n as usize).build_global()?;
+        }
+        match cli.command {
+            Command::Build(a) => commands::build::run(a),
+            Command::Export(a) => commands::export::run(a),
+            Command::Info(a) => commands::info::run(a),
+            Command::Simulate(a) => commands::simulate::run(a),
+            Command::Demo(a) => commands::demo::run(a),
+            Command::Bench(a) => commands::bench::run(a),
+        }
+    })();
+    if let Err(e) = result {
+        eprintln!("mrfmap: error: {e:#}");
+        std::process::exit(1);
+    }
+}

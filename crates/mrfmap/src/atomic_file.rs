@@ -20,10 +20,7 @@ use crate::error::{Error, Result};
 /// assert_eq!(std::fs::read(&path).unwrap(), b"hello");
 /// # std::fs::remove_dir_all(&dir).unwrap();
 /// ```
-pub fn write_atomic(
-    path: &Path,
-    fill: impl FnOnce(&mut BufWriter<File>) -> std::io::Result<()>,
-) -> Result<()> {
+pub fn write_atomic(path: &Path, fill: impl FnOnce(&mut BufWriter<File>) -> std::io::Result<()>) -> Result<()> {
     let tmp = temp_path(path);
     let result = (|| {
         let file = File::create(&tmp)?;
@@ -42,10 +39,7 @@ pub fn write_atomic(
 
 /// `dir/.name.PID.tmp`: same folder (so the rename is atomic), hidden, unique per process.
 fn temp_path(path: &Path) -> PathBuf {
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
+    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
     path.with_file_name(format!(".{name}.{}.tmp", std::process::id()))
 }
 
@@ -65,11 +59,7 @@ mod tests {
         .unwrap_err();
         assert!(err.to_string().contains("out.bin"), "{err}");
         assert!(!path.exists());
-        assert_eq!(
-            std::fs::read_dir(&dir).unwrap().count(),
-            0,
-            "temporary file left behind"
-        );
+        assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 0, "temporary file left behind");
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

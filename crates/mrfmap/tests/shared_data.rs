@@ -7,16 +7,11 @@ use mrfmap::inference::{Engine, LogOddsEngine, LogOddsParams};
 use mrfmap::source::Dataset;
 
 fn shared(name: &str) -> Option<PathBuf> {
-    let p = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../../../shared/data")
-        .join(name);
+    let p = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data").join(name);
     if p.is_dir() {
         Some(p)
     } else {
-        eprintln!(
-            "skipping: {} not found (only present next to the project's own checkout)",
-            p.display()
-        );
+        eprintln!("skipping: {} not found (only present next to the project's own checkout)", p.display());
         None
     }
 }
@@ -44,10 +39,7 @@ fn coffin_world_loads_with_patch_noise_and_truth() {
     let ds = Dataset::open(&root).unwrap();
     assert_eq!(ds.len(), 12);
     let noise = ds.noise().expect("coffin-world has noise.toml");
-    assert_eq!(
-        noise.patches.as_ref().map(|p| (p.rows, p.cols, p.size)),
-        Some((24, 32, 20))
-    );
+    assert_eq!(noise.patches.as_ref().map(|p| (p.rows, p.cols, p.size)), Some((24, 32, 20)));
     let truth = ds.truth_depth(3).unwrap().expect("gt_depth present");
     let noisy = ds.frame(3).unwrap().depth;
     // The noisy image is the truth plus the model's noise: normalised residuals
@@ -68,10 +60,7 @@ fn coffin_world_loads_with_patch_noise_and_truth() {
     let mean = sum / n as f64;
     let sd = (sum2 / n as f64 - mean * mean).sqrt();
     eprintln!("coffin-world view 3: {n} pixels, normalised residual mean {mean:.3}, std {sd:.3}");
-    assert!(
-        n > 100_000 && mean.abs() < 0.1 && (sd - 1.0).abs() < 0.15,
-        "n {n}, mean {mean}, std {sd}"
-    );
+    assert!(n > 100_000 && mean.abs() < 0.1 && (sd - 1.0).abs() < 0.15, "n {n}, mean {mean}, std {sd}");
 }
 
 /// OctoMap 1.9.7 on these five frames, no max range: 15,444 occupied voxels at 0.05 m and
@@ -84,21 +73,13 @@ fn logodds_matches_octomap_occupied_counts() {
     let ds = Dataset::open(&root).unwrap();
     let frames: Vec<_> = (0..ds.len()).map(|i| ds.frame(i).unwrap()).collect();
     for (resolution, octomap) in [(0.05, 15_444.0), (0.02, 104_758.0)] {
-        let mut e =
-            LogOddsEngine::new(resolution, Default::default(), LogOddsParams::default()).unwrap();
+        let mut e = LogOddsEngine::new(resolution, Default::default(), LogOddsParams::default()).unwrap();
         for f in &frames {
             e.integrate(f).unwrap();
         }
         let occupied = e.map().occupied_count() as f64;
         let rel = (occupied - octomap) / octomap;
-        eprintln!(
-            "resolution {resolution}: {occupied} occupied, OctoMap {octomap}, {:+.2}%",
-            rel * 100.0
-        );
-        assert!(
-            rel.abs() < 0.03,
-            "resolution {resolution}: {occupied} vs OctoMap {octomap} ({:+.2}%)",
-            rel * 100.0
-        );
+        eprintln!("resolution {resolution}: {occupied} occupied, OctoMap {octomap}, {:+.2}%", rel * 100.0);
+        assert!(rel.abs() < 0.03, "resolution {resolution}: {occupied} vs OctoMap {octomap} ({:+.2}%)", rel * 100.0);
     }
 }

@@ -44,26 +44,8 @@ pub struct Camera {
 
 impl Camera {
     /// Intrinsics without a depth range; fails on a zero focal length, empty image or bad scale.
-    pub fn new(
-        fx: f64,
-        fy: f64,
-        cx: f64,
-        cy: f64,
-        width: u32,
-        height: u32,
-        depth_scale: f64,
-    ) -> Result<Self> {
-        let cam = Camera {
-            fx,
-            fy,
-            cx,
-            cy,
-            width,
-            height,
-            depth_scale,
-            min_depth: None,
-            max_depth: None,
-        };
+    pub fn new(fx: f64, fy: f64, cx: f64, cy: f64, width: u32, height: u32, depth_scale: f64) -> Result<Self> {
+        let cam = Camera { fx, fy, cx, cy, width, height, depth_scale, min_depth: None, max_depth: None };
         cam.validate().map_err(Error::Invalid)?;
         Ok(cam)
     }
@@ -86,22 +68,13 @@ impl Camera {
             return Err("intrinsics must be finite numbers".into());
         }
         if self.fx == 0.0 || self.fy == 0.0 {
-            return Err(format!(
-                "focal lengths must be non-zero (fx = {}, fy = {})",
-                self.fx, self.fy
-            ));
+            return Err(format!("focal lengths must be non-zero (fx = {}, fy = {})", self.fx, self.fy));
         }
         if self.width == 0 || self.height == 0 {
-            return Err(format!(
-                "image size must be positive ({}x{})",
-                self.width, self.height
-            ));
+            return Err(format!("image size must be positive ({}x{})", self.width, self.height));
         }
         if self.depth_scale <= 0.0 {
-            return Err(format!(
-                "depth_scale must be positive, got {}",
-                self.depth_scale
-            ));
+            return Err(format!("depth_scale must be positive, got {}", self.depth_scale));
         }
         if let (Some(a), Some(b)) = (self.min_depth, self.max_depth) {
             if !(a >= 0.0 && b > a) {

@@ -18,20 +18,12 @@ pub struct DepthImage {
 impl DepthImage {
     /// An image with no returns.
     pub fn new(width: u32, height: u32) -> Self {
-        DepthImage {
-            width,
-            height,
-            data: vec![0.0; width as usize * height as usize],
-        }
+        DepthImage { width, height, data: vec![0.0; width as usize * height as usize] }
     }
 
     /// Wraps row-major metres; `None` if the length is not `width * height`.
     pub fn from_vec(width: u32, height: u32, data: Vec<f32>) -> Option<Self> {
-        (data.len() == width as usize * height as usize).then_some(DepthImage {
-            width,
-            height,
-            data,
-        })
+        (data.len() == width as usize * height as usize).then_some(DepthImage { width, height, data })
     }
 
     /// Width in pixels.
@@ -70,9 +62,6 @@ impl DepthImage {
 
     /// Number of pixels with a valid return.
     pub fn valid_count(&self) -> usize {
-        self.data
-            .iter()
-            .filter(|z| **z > 0.0 && z.is_finite())
-            .count()
+        self.data.iter().filter(|z| **z > 0.0 && z.is_finite()).count()
     }
 }

@@ -30,10 +30,7 @@ impl Poly {
 
     fn from_coeffs(c: &[f64]) -> std::result::Result<Self, String> {
         if c.is_empty() || c.len() > 3 {
-            return Err(format!(
-                "a polynomial needs 1 to 3 coefficients, got {}",
-                c.len()
-            ));
+            return Err(format!("a polynomial needs 1 to 3 coefficients, got {}", c.len()));
         }
         if c.iter().any(|v| !v.is_finite()) {
             return Err("polynomial coefficient is NaN or infinite".into());
@@ -99,11 +96,7 @@ struct PatchFile {
 impl NoiseModel {
     /// One pair of polynomials for every pixel.
     pub fn aggregate(bias: Poly, std: Poly) -> Self {
-        NoiseModel {
-            bias,
-            std,
-            patches: None,
-        }
+        NoiseModel { bias, std, patches: None }
     }
 
     /// Reads a `noise.toml` file.
@@ -119,9 +112,8 @@ impl NoiseModel {
 
     /// Parses the `[noise]` table of a scene file (same keys as `noise.toml`).
     pub(crate) fn from_value(value: toml::Value, origin: &Path) -> Result<Self> {
-        let file: NoiseFile = value
-            .try_into()
-            .map_err(|e: toml::de::Error| Error::file(origin, format!("[noise]: {e}")))?;
+        let file: NoiseFile =
+            value.try_into().map_err(|e: toml::de::Error| Error::file(origin, format!("[noise]: {e}")))?;
         Self::from_file(file).map_err(|m| Error::file(origin, format!("[noise]: {m}")))
     }
 
@@ -145,9 +137,7 @@ impl NoiseModel {
                 let parse = |list: &[Vec<f64>], what: &str| {
                     list.iter()
                         .enumerate()
-                        .map(|(i, c)| {
-                            Poly::from_coeffs(c).map_err(|m| format!("patches.{what}[{i}]: {m}"))
-                        })
+                        .map(|(i, c)| Poly::from_coeffs(c).map_err(|m| format!("patches.{what}[{i}]: {m}")))
                         .collect::<std::result::Result<Vec<_>, _>>()
                 };
                 Some(PatchModel {
@@ -207,11 +197,7 @@ impl NoiseModel {
         );
         let _ = writeln!(s, "bias = {}\nstd = {}", poly(&self.bias), poly(&self.std));
         if let Some(p) = &self.patches {
-            let _ = writeln!(
-                s,
-                "\n[patches]\nsize = {}\nrows = {}\ncols = {}",
-                p.size, p.rows, p.cols
-            );
+            let _ = writeln!(s, "\n[patches]\nsize = {}\nrows = {}\ncols = {}", p.size, p.rows, p.cols);
             for (name, list) in [("bias", &p.bias), ("std", &p.std)] {
                 let _ = writeln!(s, "{name} = [");
                 for q in list {
@@ -238,9 +224,7 @@ mod tests {
                 rows: 2,
                 cols: 2,
                 bias: (0..n).map(|i| Poly([i as f64 * 0.001, 0.0, 0.0])).collect(),
-                std: (0..n)
-                    .map(|i| Poly([0.002, i as f64 * 0.001, -1.0]))
-                    .collect(),
+                std: (0..n).map(|i| Poly([0.002, i as f64 * 0.001, -1.0])).collect(),
             }),
         }
     }
@@ -252,11 +236,7 @@ mod tests {
         assert_eq!(back, m);
         assert_eq!(m.bias_std(25, 5, 1.0).0, 0.001); // row 0, col 1
         assert_eq!(m.bias_std(5, 25, 1.0).0, 0.002); // row 1, col 0
-        assert_eq!(
-            m.bias_std(0, 0, 1.0).1,
-            STD_FLOOR,
-            "negative std is floored"
-        );
+        assert_eq!(m.bias_std(0, 0, 1.0).1, STD_FLOOR, "negative std is floored");
         let cam = Camera::new(1.0, 1.0, 0.0, 0.0, 40, 40, 1.0).unwrap();
         assert!(m.check_camera(&cam).is_ok());
         let cam = Camera::new(1.0, 1.0, 0.0, 0.0, 64, 40, 1.0).unwrap();
@@ -266,15 +246,12 @@ mod tests {
     #[test]
     fn errors_name_file_and_problem() {
         let p = Path::new("noise.toml");
-        let e = NoiseModel::from_toml("bias = [0.0]\nstd = [0.1]\nwobble = 1\n", p)
-            .unwrap_err()
-            .to_string();
+        let e = NoiseModel::from_toml("bias = [0.0]\nstd = [0.1]\nwobble = 1\n", p).unwrap_err().to_string();
         assert!(e.contains("noise.toml") && e.contains("wobble"), "{e}");
-        let e = NoiseModel::from_toml("bias = [0.0, 1, 2, 3]\nstd = [0.1]\n", p)
-            .unwrap_err()
-            .to_string();
+        let e = NoiseModel::from_toml("bias = [0.0, 1, 2, 3]\nstd = [0.1]\n", p).unwrap_err().to_string();
         assert!(e.contains("1 to 3 coefficients"), "{e}");
-        let bad = "bias = [0.0]\nstd = [0.1]\n[patches]\nsize = 20\nrows = 2\ncols = 2\nbias = [[0.0]]\nstd = [[0.1]]\n";
+        let bad =
+            "bias = [0.0]\nstd = [0.1]\n[patches]\nsize = 20\nrows = 2\ncols = 2\nbias = [[0.0]]\nstd = [[0.1]]\n";
         let e = NoiseModel::from_toml(bad, p).unwrap_err().to_string();
         assert!(e.contains("rows * cols = 4"), "{e}");
     }

@@ -30,10 +30,7 @@ pub fn pose_from_tum(t: [f64; 3], q_xyzw: [f64; 4]) -> Result<(Pose, bool), Stri
         return Err("pose quaternion is zero".into());
     }
     let rotation = UnitQuaternion::from_quaternion(q);
-    Ok((
-        Isometry3::from_parts(Translation3::new(t[0], t[1], t[2]), rotation),
-        (norm - 1.0).abs() > UNIT_TOLERANCE,
-    ))
+    Ok((Isometry3::from_parts(Translation3::new(t[0], t[1], t[2]), rotation), (norm - 1.0).abs() > UNIT_TOLERANCE))
 }
 
 /// The TUM fields `[tx, ty, tz, qx, qy, qz, qw]` of a pose.
@@ -60,10 +57,7 @@ pub fn look_at(eye: Vector3<f64>, target: Vector3<f64>) -> Result<Pose, String> 
     let x = right.normalize();
     let y = z.cross(&x);
     let rotation = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[x, y, z]));
-    Ok(Isometry3::from_parts(
-        Translation3::from(eye),
-        UnitQuaternion::from_rotation_matrix(&rotation),
-    ))
+    Ok(Isometry3::from_parts(Translation3::from(eye), UnitQuaternion::from_rotation_matrix(&rotation)))
 }
 
 #[cfg(test)]

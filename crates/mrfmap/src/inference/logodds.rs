@@ -30,12 +30,7 @@ pub struct LogOddsParams {
 
 impl Default for LogOddsParams {
     fn default() -> Self {
-        LogOddsParams {
-            p_hit: 0.7,
-            p_miss: 0.4,
-            clamp_min: 0.1192,
-            clamp_max: 0.971,
-        }
+        LogOddsParams { p_hit: 0.7, p_miss: 0.4, clamp_min: 0.1192, clamp_max: 0.971 }
     }
 }
 
@@ -69,9 +64,7 @@ impl LogOddsEngine {
     /// An empty map; fails on a bad resolution or probabilities outside (0, 1).
     pub fn new(resolution: f64, limits: RayLimits, params: LogOddsParams) -> Result<Self> {
         let p = params;
-        let ok = [p.p_hit, p.p_miss, p.clamp_min, p.clamp_max]
-            .iter()
-            .all(|v| *v > 0.0 && *v < 1.0);
+        let ok = [p.p_hit, p.p_miss, p.clamp_min, p.clamp_max].iter().all(|v| *v > 0.0 && *v < 1.0);
         if !ok || p.clamp_min >= p.clamp_max {
             return Err(Error::Invalid(format!(
                 "log-odds parameters must be in (0, 1) with clamp_min < clamp_max: {p:?}"
@@ -122,17 +115,10 @@ impl Engine for LogOddsEngine {
 
     fn map(&self) -> Map {
         let mut map = Map::new(self.name(), self.grid.resolution()).expect("valid resolution");
-        map.voxels = self.grid.map(|l| MapVoxel {
-            occupancy: sigmoid(*l),
-            variance: 0.0,
-        });
+        map.voxels = self.grid.map(|l| MapVoxel { occupancy: sigmoid(*l), variance: 0.0 });
         let p = self.params;
-        for (k, v) in [
-            ("p_hit", p.p_hit),
-            ("p_miss", p.p_miss),
-            ("clamp_min", p.clamp_min),
-            ("clamp_max", p.clamp_max),
-        ] {
+        for (k, v) in [("p_hit", p.p_hit), ("p_miss", p.p_miss), ("clamp_min", p.clamp_min), ("clamp_max", p.clamp_max)]
+        {
             map.params.insert(k.into(), v.to_string());
         }
         if let Some(m) = self.limits.max_range {
@@ -237,9 +223,7 @@ impl RowMarker {
     }
 
     fn finish(self) -> ScanMarks {
-        ScanMarks {
-            bricks: self.marks.into_iter().collect(),
-        }
+        ScanMarks { bricks: self.marks.into_iter().collect() }
     }
 }
 
@@ -251,42 +235,21 @@ mod tests {
 
     /// A frame of a small camera at the origin looking along +x at a wall `dist` away.
     fn wall_frame(dist: f32, w: u32, h: u32) -> Frame {
-        let camera = Camera::new(
-            20.0,
-            20.0,
-            (w as f64 - 1.0) / 2.0,
-            (h as f64 - 1.0) / 2.0,
-            w,
-            h,
-            5000.0,
-        )
-        .unwrap();
+        let camera = Camera::new(20.0, 20.0, (w as f64 - 1.0) / 2.0, (h as f64 - 1.0) / 2.0, w, h, 5000.0).unwrap();
         let mut depth = DepthImage::new(w, h);
         for v in 0..h {
             for u in 0..w {
                 depth.set(u, v, dist);
             }
         }
-        let pose = look_at(
-            Vector3::new(0.013, 0.021, 0.017),
-            Vector3::new(1.0, 0.021, 0.017),
-        )
-        .unwrap();
-        Frame {
-            index: 0,
-            timestamp: 0.0,
-            depth,
-            pose,
-            camera,
-            noise: None,
-        }
+        let pose = look_at(Vector3::new(0.013, 0.021, 0.017), Vector3::new(1.0, 0.021, 0.017)).unwrap();
+        Frame { index: 0, timestamp: 0.0, depth, pose, camera, noise: None }
     }
 
     #[test]
     fn single_ray_updates_once_per_voxel() {
         let frame = wall_frame(1.0, 1, 1);
-        let mut e =
-            LogOddsEngine::new(0.1, RayLimits::default(), LogOddsParams::default()).unwrap();
+        let mut e = LogOddsEngine::new(0.1, RayLimits::default(), LogOddsParams::default()).unwrap();
         e.integrate(&frame).unwrap();
         let hit = logit(0.7) as f32;
         let miss = logit(0.4) as f32;
@@ -312,23 +275,13 @@ mod tests {
         let mut frame = wall_frame(2.0, 2, 1);
         frame.camera.fx = 1e6; // both pixels look almost straight ahead
         frame.depth.set(0, 0, 0.55);
-        let mut e =
-            LogOddsEngine::new(0.1, RayLimits::default(), LogOddsParams::default()).unwrap();
+        let mut e = LogOddsEngine::new(0.1, RayLimits::default(), LogOddsParams::default()).unwrap();
         e.integrate(&frame).unwrap();
-        assert_eq!(
-            e.log_odds().get(VoxelKey([5, 0, 0])),
-            Some(&(logit(0.7) as f32))
-        );
-        let limits = RayLimits {
-            max_range: Some(1.0),
-            bounds: None,
-        };
+        assert_eq!(e.log_odds().get(VoxelKey([5, 0, 0])), Some(&(logit(0.7) as f32)));
+        let limits = RayLimits { max_range: Some(1.0), bounds: None };
         let mut e = LogOddsEngine::new(0.1, limits, LogOddsParams::default()).unwrap();
         e.integrate(&wall_frame(2.0, 1, 1)).unwrap();
-        assert!(
-            e.log_odds().iter().all(|(_, l)| *l < 0.0),
-            "max-range rays carry no hit"
-        );
+        assert!(e.log_odds().iter().all(|(_, l)| *l < 0.0), "max-range rays carry no hit");
         assert_eq!(e.log_odds().len(), 11);
     }
 
@@ -338,25 +291,19 @@ mod tests {
             let mut f = wall_frame(3.0, 64, 48);
             for v in 0..48 {
                 for u in 0..64 {
-                    f.depth
-                        .set(u, v, 1.0 + ((u * 7 + v * 13) % 29) as f32 * 0.1);
+                    f.depth.set(u, v, 1.0 + ((u * 7 + v * 13) % 29) as f32 * 0.1);
                 }
             }
             f
         };
         let run = |threads| {
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap();
-            let mut e =
-                LogOddsEngine::new(0.02, RayLimits::default(), LogOddsParams::default()).unwrap();
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            let mut e = LogOddsEngine::new(0.02, RayLimits::default(), LogOddsParams::default()).unwrap();
             pool.install(|| {
                 e.integrate(&frame).unwrap();
                 e.integrate(&frame).unwrap();
             });
-            let mut v: Vec<(VoxelKey, u32)> =
-                e.log_odds().iter().map(|(k, l)| (k, l.to_bits())).collect();
+            let mut v: Vec<(VoxelKey, u32)> = e.log_odds().iter().map(|(k, l)| (k, l.to_bits())).collect();
             v.sort();
             v
         };

@@ -60,17 +60,10 @@ impl FromStr for EngineKind {
     type Err = Error;
 
     fn from_str(s: &str) -> Result<Self> {
-        EngineKind::ALL
-            .iter()
-            .copied()
-            .find(|k| k.name() == s)
-            .ok_or_else(|| {
-                let names: Vec<_> = EngineKind::ALL.iter().map(|k| k.name()).collect();
-                Error::Invalid(format!(
-                    "unknown engine {s:?}; available: {}",
-                    names.join(", ")
-                ))
-            })
+        EngineKind::ALL.iter().copied().find(|k| k.name() == s).ok_or_else(|| {
+            let names: Vec<_> = EngineKind::ALL.iter().map(|k| k.name()).collect();
+            Error::Invalid(format!("unknown engine {s:?}; available: {}", names.join(", ")))
+        })
     }
 }
 
@@ -96,10 +89,8 @@ pub struct EngineConfig {
 pub fn new_engine(config: &EngineConfig) -> Result<Box<dyn Engine>> {
     config.limits.validate()?;
     Ok(match config.kind {
-        EngineKind::LogOdds => Box::new(LogOddsEngine::new(
-            config.resolution,
-            config.limits,
-            LogOddsParams::default(),
-        )?),
+        EngineKind::LogOdds => {
+            Box::new(LogOddsEngine::new(config.resolution, config.limits, LogOddsParams::default())?)
+        }
     })
 }

@@ -47,9 +47,7 @@ fn encode(map: &Map) -> Vec<u8> {
         params: map.params.clone(),
     };
     let header = toml::to_string(&header).expect("header is plain data");
-    let mut out = Vec::with_capacity(
-        64 + header.len() + map.voxels.len() * 8 + map.voxels.brick_count() * 76,
-    );
+    let mut out = Vec::with_capacity(64 + header.len() + map.voxels.len() * 8 + map.voxels.brick_count() * 76);
     out.extend_from_slice(MAGIC);
     out.extend_from_slice(&VERSION.to_le_bytes());
     out.extend_from_slice(&(header.len() as u32).to_le_bytes());
@@ -87,11 +85,7 @@ struct Reader<'a> {
 
 impl<'a> Reader<'a> {
     fn take(&mut self, n: usize) -> std::result::Result<&'a [u8], String> {
-        let end = self
-            .pos
-            .checked_add(n)
-            .filter(|e| *e <= self.bytes.len())
-            .ok_or("file is truncated")?;
+        let end = self.pos.checked_add(n).filter(|e| *e <= self.bytes.len()).ok_or("file is truncated")?;
         let s = &self.bytes[self.pos..end];
         self.pos = end;
         Ok(s)
@@ -119,23 +113,17 @@ fn decode(bytes: &[u8]) -> std::result::Result<Map, String> {
     }
     let version = u32::from_le_bytes(bytes[8..12].try_into().unwrap());
     if version != VERSION {
-        return Err(format!(
-            "map format version {version} is not supported (this build reads version {VERSION})"
-        ));
+        return Err(format!("map format version {version} is not supported (this build reads version {VERSION})"));
     }
     let (body, tail) = bytes.split_at(bytes.len() - 4);
     if crc32(body) != u32::from_le_bytes(tail.try_into().unwrap()) {
         return Err("checksum mismatch: the file is corrupt or truncated".into());
     }
-    let mut r = Reader {
-        bytes: body,
-        pos: 12,
-    };
+    let mut r = Reader { bytes: body, pos: 12 };
     let header_len = r.u32()? as usize;
     let header = std::str::from_utf8(r.take(header_len)?).map_err(|_| "header is not UTF-8")?;
     let header: Header = toml::from_str(header).map_err(|e| format!("bad header: {e}"))?;
-    let mut map =
-        Map::new(&header.engine, header.resolution).map_err(|e| format!("bad header: {e}"))?;
+    let mut map = Map::new(&header.engine, header.resolution).map_err(|e| format!("bad header: {e}"))?;
     map.params = header.params;
     map.has_variance = header.has_variance;
     for _ in 0..header.bricks {
@@ -148,27 +136,14 @@ fn decode(bytes: &[u8]) -> std::result::Result<Map, String> {
         for slot in mask_slots(&mask) {
             let occupancy = r.f32()?;
             let variance = if header.has_variance { r.f32()? } else { 0.0 };
-            brick.get_or_insert(
-                slot,
-                MapVoxel {
-                    occupancy,
-                    variance,
-                },
-            );
+            brick.get_or_insert(slot, MapVoxel { occupancy, variance });
         }
     }
     if r.pos != body.len() {
-        return Err(format!(
-            "{} unexpected bytes after the last brick",
-            body.len() - r.pos
-        ));
+        return Err(format!("{} unexpected bytes after the last brick", body.len() - r.pos));
     }
     if map.voxels.len() as u64 != header.voxels {
-        return Err(format!(
-            "header says {} voxels, file holds {}",
-            header.voxels,
-            map.voxels.len()
-        ));
+        return Err(format!("header says {} voxels, file holds {}", header.voxels, map.voxels.len()));
     }
     Ok(map)
 }
@@ -182,11 +157,7 @@ fn crc32(data: &[u8]) -> u32 {
             let mut c = i as u32;
             let mut k = 0;
             while k < 8 {
-                c = if c & 1 != 0 {
-                    0xEDB8_8320 ^ (c >> 1)
-                } else {
-                    c >> 1
-                };
+                c = if c & 1 != 0 { 0xEDB8_8320 ^ (c >> 1) } else { c >> 1 };
                 k += 1;
             }
             t[i] = c;
@@ -214,13 +185,7 @@ mod tests {
         let mut rng = Rng::new(1);
         for _ in 0..3000 {
             let k = VoxelKey([0; 3].map(|_| (rng.next_u64() % 100) as i32 - 50));
-            map.voxels.insert(
-                k,
-                MapVoxel {
-                    occupancy: rng.uniform() as f32,
-                    variance: rng.uniform() as f32,
-                },
-            );
+            map.voxels.insert(k, MapVoxel { occupancy: rng.uniform() as f32, variance: rng.uniform() as f32 });
         }
         map
     }
@@ -253,16 +218,8 @@ mod tests {
         let mut flipped = bytes.clone();
         flipped[bytes.len() / 2] ^= 0x10;
         assert!(decode(&flipped).unwrap_err().contains("checksum"));
-        assert!(
-            decode(&bytes[..bytes.len() - 100])
-                .unwrap_err()
-                .contains("checksum")
-        );
-        assert!(
-            decode(b"ply\nformat ascii 1.0\n")
-                .unwrap_err()
-                .contains("not an mrfmap")
-        );
+        assert!(decode(&bytes[..bytes.len() - 100]).unwrap_err().contains("checksum"));
+        assert!(decode(b"ply\nformat ascii 1.0\n").unwrap_err().contains("not an mrfmap"));
         let mut future = bytes.clone();
         future[8] = 9;
         assert!(decode(&future).unwrap_err().contains("version 9"));

@@ -32,11 +32,7 @@ impl VoxelKey {
     /// The voxel containing world point `p` at resolution `r`.
     #[inline]
     pub fn from_point(p: [f64; 3], r: f64) -> Self {
-        VoxelKey([
-            (p[0] / r).floor() as i32,
-            (p[1] / r).floor() as i32,
-            (p[2] / r).floor() as i32,
-        ])
+        VoxelKey([(p[0] / r).floor() as i32, (p[1] / r).floor() as i32, (p[2] / r).floor() as i32])
     }
 
     /// World coordinates of the voxel centre.
@@ -106,10 +102,7 @@ pub struct Brick<V> {
 
 impl<V: Copy + Default> Brick<V> {
     fn new() -> Self {
-        Brick {
-            mask: [0; 8],
-            values: [V::default(); BRICK_VOXELS],
-        }
+        Brick { mask: [0; 8], values: [V::default(); BRICK_VOXELS] }
     }
 
     /// Which slots are allocated.
@@ -173,10 +166,7 @@ impl<V: Copy + Default> Grid<V> {
                 "resolution must be a positive number of metres, got {resolution}"
             )));
         }
-        Ok(Grid {
-            resolution,
-            bricks: FxHashMap::default(),
-        })
+        Ok(Grid { resolution, bricks: FxHashMap::default() })
     }
 
     /// Voxel edge length in metres.
@@ -193,8 +183,7 @@ impl<V: Copy + Default> Grid<V> {
     /// Mutable value of a voxel, allocating it (with `init`) and its brick if needed.
     #[inline]
     pub fn get_or_insert(&mut self, key: VoxelKey, init: V) -> &mut V {
-        self.brick_or_insert(key.brick())
-            .get_or_insert(key.slot(), init)
+        self.brick_or_insert(key.brick()).get_or_insert(key.slot(), init)
     }
 
     /// Sets a voxel's value, allocating it.
@@ -204,9 +193,7 @@ impl<V: Copy + Default> Grid<V> {
 
     /// A brick, allocating an empty one if needed.
     pub fn brick_or_insert(&mut self, key: BrickKey) -> &mut Brick<V> {
-        self.bricks
-            .entry(key)
-            .or_insert_with(|| Box::new(Brick::new()))
+        self.bricks.entry(key).or_insert_with(|| Box::new(Brick::new()))
     }
 
     /// A brick if present.
@@ -233,9 +220,7 @@ impl<V: Copy + Default> Grid<V> {
 
     /// All allocated voxels in unspecified order.
     pub fn iter(&self) -> impl Iterator<Item = (VoxelKey, &V)> + '_ {
-        self.bricks
-            .iter()
-            .flat_map(|(bk, b)| b.iter().map(move |(s, v)| (bk.voxel(s), v)))
+        self.bricks.iter().flat_map(|(bk, b)| b.iter().map(move |(s, v)| (bk.voxel(s), v)))
     }
 
     /// Number of allocated voxels.
@@ -274,10 +259,7 @@ impl<V: Copy + Default> Grid<V> {
 
     /// A grid of the same shape with every value mapped through `f`.
     pub fn map<W: Copy + Default>(&self, mut f: impl FnMut(&V) -> W) -> Grid<W> {
-        let mut out = Grid {
-            resolution: self.resolution,
-            bricks: FxHashMap::default(),
-        };
+        let mut out = Grid { resolution: self.resolution, bricks: FxHashMap::default() };
         out.bricks.reserve(self.bricks.len());
         for (k, b) in &self.bricks {
             let nb = out.brick_or_insert(*k);
@@ -309,10 +291,7 @@ mod tests {
     #[test]
     fn from_point_uses_floor() {
         let r = 0.1;
-        assert_eq!(
-            VoxelKey::from_point([0.0, -1e-12, 0.35], r),
-            VoxelKey([0, -1, 3])
-        );
+        assert_eq!(VoxelKey::from_point([0.0, -1e-12, 0.35], r), VoxelKey([0, -1, 3]));
         let c = VoxelKey([-4, 2, 9]).center(r);
         assert_eq!(VoxelKey::from_point(c, r), VoxelKey([-4, 2, 9]));
     }
@@ -343,9 +322,6 @@ mod tests {
         for s in [0, 5, 63, 64, 300, 511] {
             mask_set(&mut m, s);
         }
-        assert_eq!(
-            mask_slots(&m).collect::<Vec<_>>(),
-            vec![0, 5, 63, 64, 300, 511]
-        );
+        assert_eq!(mask_slots(&m).collect::<Vec<_>>(), vec![0, 5, 63, 64, 300, 511]);
     }
 }

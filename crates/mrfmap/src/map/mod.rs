@@ -7,10 +7,7 @@
 mod file;
 mod grid;
 
-pub use grid::{
-    BRICK_EDGE, BRICK_VOXELS, Brick, BrickKey, Grid, SlotMask, VoxelKey, mask_has, mask_set,
-    mask_slots,
-};
+pub use grid::{BRICK_EDGE, BRICK_VOXELS, Brick, BrickKey, Grid, SlotMask, VoxelKey, mask_has, mask_set, mask_slots};
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -52,12 +49,7 @@ pub struct Map {
 impl Map {
     /// An empty map.
     pub fn new(engine: &str, resolution: f64) -> crate::Result<Self> {
-        Ok(Map {
-            engine: engine.into(),
-            params: BTreeMap::new(),
-            has_variance: false,
-            voxels: Grid::new(resolution)?,
-        })
+        Ok(Map { engine: engine.into(), params: BTreeMap::new(), has_variance: false, voxels: Grid::new(resolution)? })
     }
 
     /// Voxel edge in metres.
@@ -67,25 +59,18 @@ impl Map {
 
     /// Occupancy probability at a world point; `None` where the map has no information.
     pub fn occupancy_at(&self, p: [f64; 3]) -> Option<f32> {
-        self.voxels
-            .get(VoxelKey::from_point(p, self.resolution()))
-            .map(|v| v.occupancy)
+        self.voxels.get(VoxelKey::from_point(p, self.resolution())).map(|v| v.occupancy)
     }
 
     /// Number of voxels with occupancy above [`OCCUPIED_THRESHOLD`].
     pub fn occupied_count(&self) -> usize {
-        self.voxels
-            .iter()
-            .filter(|(_, v)| v.occupancy > OCCUPIED_THRESHOLD)
-            .count()
+        self.voxels.iter().filter(|(_, v)| v.occupancy > OCCUPIED_THRESHOLD).count()
     }
 
     /// World-space bounds `(min corner, max corner)` of the allocated voxels.
     pub fn bounds(&self) -> Option<([f64; 3], [f64; 3])> {
         let r = self.resolution();
-        self.voxels
-            .key_bounds()
-            .map(|(lo, hi)| (lo.0.map(|i| i as f64 * r), hi.0.map(|i| (i + 1) as f64 * r)))
+        self.voxels.key_bounds().map(|(lo, hi)| (lo.0.map(|i| i as f64 * r), hi.0.map(|i| (i + 1) as f64 * r)))
     }
 
     /// Saves in the binary map format (atomically: temp file + rename).

@@ -20,9 +20,7 @@ pub struct PlyOptions {
 impl PlyOptions {
     /// Only occupied voxels (occupancy > 0.5).
     pub fn occupied_only() -> Self {
-        PlyOptions {
-            min_occupancy: Some(OCCUPIED_THRESHOLD),
-        }
+        PlyOptions { min_occupancy: Some(OCCUPIED_THRESHOLD) }
     }
 }
 
@@ -89,10 +87,7 @@ pub fn read_ply(path: &Path) -> Result<PlyVertices> {
 
 fn parse_ply(bytes: &[u8]) -> std::result::Result<PlyVertices, String> {
     const END: &[u8] = b"end_header\n";
-    let end = bytes
-        .windows(END.len())
-        .position(|w| w == END)
-        .ok_or("not a PLY file (no end_header)")?;
+    let end = bytes.windows(END.len()).position(|w| w == END).ok_or("not a PLY file (no end_header)")?;
     let header = std::str::from_utf8(&bytes[..end]).map_err(|_| "PLY header is not text")?;
     let mut lines = header.lines();
     if lines.next() != Some("ply") {
@@ -116,13 +111,9 @@ fn parse_ply(bytes: &[u8]) -> std::result::Result<PlyVertices, String> {
                     return Err(format!("element {name} before vertex is not supported"));
                 }
             }
-            ["property", "float" | "float32", name] if in_vertex => {
-                properties.push(name.to_string())
-            }
+            ["property", "float" | "float32", name] if in_vertex => properties.push(name.to_string()),
             ["property", ty, name] if in_vertex => {
-                return Err(format!(
-                    "vertex property {name} has type {ty}; only float is supported"
-                ));
+                return Err(format!("vertex property {name} has type {ty}; only float is supported"));
             }
             _ => {}
         }
@@ -137,11 +128,7 @@ fn parse_ply(bytes: &[u8]) -> std::result::Result<PlyVertices, String> {
         }
         data.chunks_exact(np * 4)
             .take(count)
-            .map(|row| {
-                row.chunks_exact(4)
-                    .map(|b| f32::from_le_bytes(b.try_into().unwrap()))
-                    .collect()
-            })
+            .map(|row| row.chunks_exact(4).map(|b| f32::from_le_bytes(b.try_into().unwrap())).collect())
             .collect()
     } else {
         let text = std::str::from_utf8(data).map_err(|_| "PLY body is not text")?;
@@ -149,11 +136,7 @@ fn parse_ply(bytes: &[u8]) -> std::result::Result<PlyVertices, String> {
             .lines()
             .filter(|l| !l.trim().is_empty())
             .take(count)
-            .map(|l| {
-                l.split_whitespace()
-                    .map(|v| v.parse::<f32>())
-                    .collect::<std::result::Result<Vec<_>, _>>()
-            })
+            .map(|l| l.split_whitespace().map(|v| v.parse::<f32>()).collect::<std::result::Result<Vec<_>, _>>())
             .collect::<std::result::Result<_, _>>()
             .map_err(|_| "PLY body has a non-number")?;
         if rows.len() != count || rows.iter().any(|r| r.len() != np) {
@@ -161,11 +144,7 @@ fn parse_ply(bytes: &[u8]) -> std::result::Result<PlyVertices, String> {
         }
         rows
     };
-    Ok(PlyVertices {
-        resolution,
-        properties,
-        rows,
-    })
+    Ok(PlyVertices { resolution, properties, rows })
 }
 
 #[cfg(test)]
@@ -177,34 +156,12 @@ mod tests {
     fn write_then_read_back() {
         let mut map = Map::new("logodds", 0.1).unwrap();
         map.has_variance = true;
-        map.voxels.insert(
-            VoxelKey([-1, 0, 2]),
-            MapVoxel {
-                occupancy: 0.9,
-                variance: 0.05,
-            },
-        );
-        map.voxels.insert(
-            VoxelKey([3, 3, 3]),
-            MapVoxel {
-                occupancy: 0.2,
-                variance: 0.01,
-            },
-        );
+        map.voxels.insert(VoxelKey([-1, 0, 2]), MapVoxel { occupancy: 0.9, variance: 0.05 });
+        map.voxels.insert(VoxelKey([3, 3, 3]), MapVoxel { occupancy: 0.2, variance: 0.01 });
         let dir = std::env::temp_dir().join(format!("mrfmap-ply-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let p = dir.join("m.ply");
-        assert_eq!(
-            write_ply(
-                &map,
-                &p,
-                PlyOptions {
-                    min_occupancy: None
-                }
-            )
-            .unwrap(),
-            2
-        );
+        assert_eq!(write_ply(&map, &p, PlyOptions { min_occupancy: None }).unwrap(), 2);
         let v = read_ply(&p).unwrap();
         assert_eq!(v.resolution, Some(0.1));
         assert_eq!(v.properties, ["x", "y", "z", "occupancy", "variance"]);

@@ -42,11 +42,7 @@ impl<'a> FrameRays<'a> {
     /// Rays of `frame`.
     pub fn new(frame: &'a Frame) -> Self {
         let t = frame.pose.translation.vector;
-        FrameRays {
-            frame,
-            rotation: *frame.pose.rotation.to_rotation_matrix().matrix(),
-            origin: [t.x, t.y, t.z],
-        }
+        FrameRays { frame, rotation: *frame.pose.rotation.to_rotation_matrix().matrix(), origin: [t.x, t.y, t.z] }
     }
 
     /// Number of image rows.
@@ -57,28 +53,16 @@ impl<'a> FrameRays<'a> {
     /// Rays of the valid pixels of row `v`, left to right.
     pub fn row(&self, v: u32) -> impl Iterator<Item = PixelRay> + '_ {
         let cam = &self.frame.camera;
-        self.frame
-            .depth
-            .row(v)
-            .iter()
-            .enumerate()
-            .filter_map(move |(u, &z)| {
-                if !(z > 0.0 && z.is_finite()) {
-                    return None;
-                }
-                let u = u as u32;
-                let ray = cam.pixel_ray(u as f64, v as f64);
-                let norm = ray.norm();
-                let d = self.rotation * (ray / norm);
-                Some(PixelRay {
-                    u,
-                    v,
-                    origin: self.origin,
-                    dir: [d.x, d.y, d.z],
-                    range: z as f64 * norm,
-                    cz: 1.0 / norm,
-                })
-            })
+        self.frame.depth.row(v).iter().enumerate().filter_map(move |(u, &z)| {
+            if !(z > 0.0 && z.is_finite()) {
+                return None;
+            }
+            let u = u as u32;
+            let ray = cam.pixel_ray(u as f64, v as f64);
+            let norm = ray.norm();
+            let d = self.rotation * (ray / norm);
+            Some(PixelRay { u, v, origin: self.origin, dir: [d.x, d.y, d.z], range: z as f64 * norm, cz: 1.0 / norm })
+        })
     }
 
     /// The measured surface point of a ray in world coordinates.
@@ -99,11 +83,8 @@ pub struct Aabb {
 impl Aabb {
     /// A box; fails unless `min < max` on every axis and all values are finite.
     pub fn new(min: [f64; 3], max: [f64; 3]) -> crate::Result<Self> {
-        if min.iter().chain(max.iter()).any(|v| !v.is_finite()) || (0..3).any(|a| min[a] >= max[a])
-        {
-            return Err(crate::Error::Invalid(format!(
-                "bounds need min < max on every axis, got {min:?} and {max:?}"
-            )));
+        if min.iter().chain(max.iter()).any(|v| !v.is_finite()) || (0..3).any(|a| min[a] >= max[a]) {
+            return Err(crate::Error::Invalid(format!("bounds need min < max on every axis, got {min:?} and {max:?}")));
         }
         Ok(Aabb { min, max })
     }
@@ -179,9 +160,7 @@ impl RayLimits {
     pub fn validate(&self) -> crate::Result<()> {
         if let Some(m) = self.max_range {
             if !(m > 0.0) {
-                return Err(crate::Error::Invalid(format!(
-                    "max range must be positive, got {m}"
-                )));
+                return Err(crate::Error::Invalid(format!("max range must be positive, got {m}")));
             }
         }
         Ok(())
@@ -198,11 +177,7 @@ impl RayLimits {
     /// assert_eq!((seg.start, seg.end, seg.hits_surface), (0.0, 3.0, false));
     /// ```
     pub fn segment(&self, ray: &PixelRay, extra: f64) -> Option<Segment> {
-        let mut seg = Segment {
-            start: 0.0,
-            end: ray.range + extra,
-            hits_surface: true,
-        };
+        let mut seg = Segment { start: 0.0, end: ray.range + extra, hits_surface: true };
         if let Some(m) = self.max_range {
             if ray.range > m {
                 seg.end = m;
@@ -230,18 +205,8 @@ mod tests {
     #[test]
     fn bounds_clip_and_drop_surfaces_outside() {
         let b = Aabb::new([0.0, -1.0, -1.0], [2.0, 1.0, 1.0]).unwrap();
-        let limits = RayLimits {
-            max_range: None,
-            bounds: Some(b),
-        };
-        let ray = |range| PixelRay {
-            u: 0,
-            v: 0,
-            origin: [-1.0, 0.0, 0.0],
-            dir: [1.0, 0.0, 0.0],
-            range,
-            cz: 1.0,
-        };
+        let limits = RayLimits { max_range: None, bounds: Some(b) };
+        let ray = |range| PixelRay { u: 0, v: 0, origin: [-1.0, 0.0, 0.0], dir: [1.0, 0.0, 0.0], range, cz: 1.0 };
         let s = limits.segment(&ray(2.0), 0.0).unwrap();
         assert_eq!((s.start, s.end, s.hits_surface), (1.0, 2.0, true));
         let s = limits.segment(&ray(5.0), 0.0).unwrap();

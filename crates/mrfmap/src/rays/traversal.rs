@@ -58,18 +58,8 @@ pub struct Traversal {
 /// assert!((hits[0].length() - 0.05).abs() < 1e-12);
 /// assert!((hits[2].s_out - 0.25).abs() < 1e-12);
 /// ```
-pub fn traverse(
-    origin: [f64; 3],
-    dir: [f64; 3],
-    s_start: f64,
-    s_end: f64,
-    resolution: f64,
-) -> Traversal {
-    let finite = origin
-        .iter()
-        .chain(dir.iter())
-        .chain([s_start, s_end, resolution].iter())
-        .all(|v| v.is_finite());
+pub fn traverse(origin: [f64; 3], dir: [f64; 3], s_start: f64, s_end: f64, resolution: f64) -> Traversal {
+    let finite = origin.iter().chain(dir.iter()).chain([s_start, s_end, resolution].iter()).all(|v| v.is_finite());
     let moving = dir.iter().any(|d| *d != 0.0);
     let mut t = Traversal {
         origin,
@@ -125,21 +115,13 @@ impl Iterator for Traversal {
             let s_in = self.s;
             if exit >= self.s_end {
                 self.done = true;
-                return (self.s_end > s_in).then_some(Crossing {
-                    key,
-                    s_in,
-                    s_out: self.s_end,
-                });
+                return (self.s_end > s_in).then_some(Crossing { key, s_in, s_out: self.s_end });
             }
             self.key[a] += self.step[a];
             self.t_max[a] = self.boundary(a);
             if exit > s_in {
                 self.s = exit;
-                return Some(Crossing {
-                    key,
-                    s_in,
-                    s_out: exit,
-                });
+                return Some(Crossing { key, s_in, s_out: exit });
             }
             // Zero length (edge/corner touch, or a start on a face): skip the voxel.
         }
@@ -153,14 +135,7 @@ mod tests {
     use crate::random::Rng;
 
     /// Brute force: sample the segment finely and list the distinct voxels in order.
-    fn sampled(
-        origin: [f64; 3],
-        dir: [f64; 3],
-        s0: f64,
-        s1: f64,
-        r: f64,
-        n: usize,
-    ) -> Vec<VoxelKey> {
+    fn sampled(origin: [f64; 3], dir: [f64; 3], s0: f64, s1: f64, r: f64, n: usize) -> Vec<VoxelKey> {
         let mut out: Vec<VoxelKey> = Vec::new();
         for k in 0..n {
             let s = s0 + (s1 - s0) * (k as f64 + 0.5) / n as f64;
@@ -185,11 +160,7 @@ mod tests {
         let ctx = format!("origin {origin:?} dir {dir:?} s [{s0}, {s1}] r {r}");
         assert!(!got.is_empty(), "{ctx}: no voxels");
         // Contiguous, positive, covering [s0, s1].
-        assert!(
-            (got[0].s_in - s0).abs() <= 1e-9 * s1.abs().max(1.0),
-            "{ctx}: starts at {}",
-            got[0].s_in
-        );
+        assert!((got[0].s_in - s0).abs() <= 1e-9 * s1.abs().max(1.0), "{ctx}: starts at {}", got[0].s_in);
         assert_eq!(got.last().unwrap().s_out, s1, "{ctx}");
         for w in got.windows(2) {
             assert_eq!(w[0].s_out, w[1].s_in, "{ctx}: gap");
@@ -211,11 +182,7 @@ mod tests {
                 let x = origin[a] + m * dir[a];
                 let lo = c.key.0[a] as f64 * r;
                 let tol = 1e-9 * (1.0 + x.abs());
-                assert!(
-                    x >= lo - tol && x <= lo + r + tol,
-                    "{ctx}: midpoint off voxel {:?}",
-                    c.key
-                );
+                assert!(x >= lo - tol && x <= lo + r + tol, "{ctx}: midpoint off voxel {:?}", c.key);
             }
         }
         // Every sampled voxel was traversed; every traversed voxel longer than two samples was sampled.
@@ -225,23 +192,14 @@ mod tests {
         let sampled_set: std::collections::HashSet<_> = reference.iter().collect();
         for c in &got {
             if c.length() > 2.0 * h {
-                assert!(
-                    sampled_set.contains(&c.key),
-                    "{ctx}: extra {:?} of length {}",
-                    c.key,
-                    c.length()
-                );
+                assert!(sampled_set.contains(&c.key), "{ctx}: extra {:?} of length {}", c.key, c.length());
             }
         }
     }
 
     fn unit(rng: &mut Rng) -> [f64; 3] {
         loop {
-            let v = [
-                rng.range(-1.0, 1.0),
-                rng.range(-1.0, 1.0),
-                rng.range(-1.0, 1.0),
-            ];
+            let v = [rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0)];
             let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
             if n > 0.1 && n <= 1.0 {
                 return v.map(|x| x / n);
@@ -256,11 +214,7 @@ mod tests {
             let r = [0.01, 0.02, 0.05, 0.1, 1.0][(rng.next_u64() % 5) as usize];
             let origin = [0; 3].map(|_| rng.range(-3.0, 3.0));
             let dir = unit(&mut rng);
-            let s0 = if rng.uniform() < 0.3 {
-                rng.range(0.0, 1.0)
-            } else {
-                0.0
-            };
+            let s0 = if rng.uniform() < 0.3 { rng.range(0.0, 1.0) } else { 0.0 };
             let s1 = s0 + rng.range(1e-3, 60.0 * r);
             check(origin, dir, s0, s1, r);
         }
@@ -311,14 +265,11 @@ mod tests {
     #[test]
     fn negative_coordinates_and_face_starts_pick_the_entered_voxel() {
         // Start exactly on the face x = 0 moving -x: the first voxel is -1, not 0.
-        let first = traverse([0.0, 0.05, 0.05], [-1.0, 0.0, 0.0], 0.0, 0.15, 0.1)
-            .next()
-            .unwrap();
+        let first = traverse([0.0, 0.05, 0.05], [-1.0, 0.0, 0.0], 0.0, 0.15, 0.1).next().unwrap();
         assert_eq!(first.key, VoxelKey([-1, 0, 0]));
         assert_eq!(first.s_in, 0.0);
-        let keys: Vec<_> = traverse([-0.25, -0.25, -0.25], [1.0, 0.0, 0.0], 0.0, 0.3, 0.1)
-            .map(|c| c.key.0[0])
-            .collect();
+        let keys: Vec<_> =
+            traverse([-0.25, -0.25, -0.25], [1.0, 0.0, 0.0], 0.0, 0.3, 0.1).map(|c| c.key.0[0]).collect();
         assert_eq!(keys, vec![-3, -2, -1, 0]);
     }
 
@@ -341,27 +292,16 @@ mod tests {
         let r = 0.05;
         let n = traverse(origin, dir, 0.0, s1, r).count();
         let end = [0, 1, 2].map(|a| origin[a] + s1 * dir[a]);
-        let expected: i64 = (0..3)
-            .map(|a| ((end[a] / r).floor() as i64 - (origin[a] / r).floor() as i64).abs())
-            .sum::<i64>()
-            + 1;
+        let expected: i64 =
+            (0..3).map(|a| ((end[a] / r).floor() as i64 - (origin[a] / r).floor() as i64).abs()).sum::<i64>() + 1;
         assert_eq!(n as i64, expected);
     }
 
     #[test]
     fn degenerate_input_is_empty() {
         assert_eq!(traverse([0.0; 3], [0.0; 3], 0.0, 1.0, 0.1).count(), 0);
-        assert_eq!(
-            traverse([0.0; 3], [1.0, 0.0, 0.0], 1.0, 1.0, 0.1).count(),
-            0
-        );
-        assert_eq!(
-            traverse([f64::NAN, 0.0, 0.0], [1.0, 0.0, 0.0], 0.0, 1.0, 0.1).count(),
-            0
-        );
-        assert_eq!(
-            traverse([0.0; 3], [1.0, 0.0, 0.0], 0.0, f64::NAN, 0.1).count(),
-            0
-        );
+        assert_eq!(traverse([0.0; 3], [1.0, 0.0, 0.0], 1.0, 1.0, 0.1).count(), 0);
+        assert_eq!(traverse([f64::NAN, 0.0, 0.0], [1.0, 0.0, 0.0], 0.0, 1.0, 0.1).count(), 0);
+        assert_eq!(traverse([0.0; 3], [1.0, 0.0, 0.0], 0.0, f64::NAN, 0.1).count(), 0);
     }
 }

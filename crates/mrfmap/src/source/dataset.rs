@@ -22,9 +22,7 @@ pub struct DatasetOptions {
 
 impl Default for DatasetOptions {
     fn default() -> Self {
-        DatasetOptions {
-            max_time_diff: 0.02,
-        }
+        DatasetOptions { max_time_diff: 0.02 }
     }
 }
 
@@ -76,28 +74,18 @@ impl Dataset {
         }
         let camera = Camera::load(&camera_path)?;
         let noise_path = root.join("noise.toml");
-        let noise = if noise_path.exists() {
-            Some(Arc::new(load_noise_for(&noise_path, &camera)?))
-        } else {
-            None
-        };
+        let noise = if noise_path.exists() { Some(Arc::new(load_noise_for(&noise_path, &camera)?)) } else { None };
 
         let depth_list = root.join("depth.txt");
         let depths = parse_depth_list(&depth_list)?;
         if depths.is_empty() {
-            return Err(Error::file(
-                &depth_list,
-                "empty dataset: no depth frames listed",
-            ));
+            return Err(Error::file(&depth_list, "empty dataset: no depth frames listed"));
         }
         for (t, p, line) in &depths {
             if !root.join(p).is_file() {
                 return Err(Error::file(
                     &depth_list,
-                    format!(
-                        "line {line}: frame at t = {t} names {}, which does not exist",
-                        p.display()
-                    ),
+                    format!("line {line}: frame at t = {t} names {}, which does not exist", p.display()),
                 ));
             }
         }
@@ -111,11 +99,7 @@ impl Dataset {
         let mut unmatched = Vec::new();
         for (i, (t, path, _)) in depths.into_iter().enumerate() {
             match pairs[i] {
-                Some(j) => frames.push(FrameInfo {
-                    timestamp: t,
-                    depth: path,
-                    pose: poses[j].1,
-                }),
+                Some(j) => frames.push(FrameInfo { timestamp: t, depth: path, pose: poses[j].1 }),
                 None => {
                     tracing::warn!(
                         "{}: no pose within {} s of depth frame {} (t = {t}); skipped",
@@ -130,19 +114,10 @@ impl Dataset {
         if frames.is_empty() {
             return Err(Error::file(
                 root.join("groundtruth.txt"),
-                format!(
-                    "no depth frame matched a pose within {} s",
-                    options.max_time_diff
-                ),
+                format!("no depth frame matched a pose within {} s", options.max_time_diff),
             ));
         }
-        Ok(Dataset {
-            root: root.to_path_buf(),
-            camera,
-            noise,
-            frames,
-            unmatched,
-        })
+        Ok(Dataset { root: root.to_path_buf(), camera, noise, frames, unmatched })
     }
 
     /// Dataset folder.
@@ -202,47 +177,31 @@ impl Dataset {
     /// The noise-free `gt_depth/` twin of frame `index`, `None` when the dataset has none.
     pub fn truth_depth(&self, index: usize) -> Result<Option<DepthImage>> {
         let info = self.info(index)?;
-        let name = info
-            .depth
-            .file_name()
-            .ok_or_else(|| Error::file(&info.depth, "not a file name"))?;
+        let name = info.depth.file_name().ok_or_else(|| Error::file(&info.depth, "not a file name"))?;
         let path = self.root.join("gt_depth").join(name);
         if !self.root.join("gt_depth").is_dir() {
             return Ok(None);
         }
         if !path.is_file() {
-            return Err(Error::file(
-                &path,
-                "missing: gt_depth/ exists but has no image for this frame",
-            ));
+            return Err(Error::file(&path, "missing: gt_depth/ exists but has no image for this frame"));
         }
         self.read_depth(&path).map(Some)
     }
 
     fn info(&self, index: usize) -> Result<&FrameInfo> {
         self.frames.get(index).ok_or_else(|| {
-            Error::Invalid(format!(
-                "frame {index} does not exist: {} has {} frames",
-                self.root.display(),
-                self.len()
-            ))
+            Error::Invalid(format!("frame {index} does not exist: {} has {} frames", self.root.display(), self.len()))
         })
     }
 
     fn read_depth(&self, path: &Path) -> Result<DepthImage> {
-        read_depth_png(
-            path,
-            self.camera.depth_scale,
-            (self.camera.width, self.camera.height),
-        )
+        read_depth_png(path, self.camera.depth_scale, (self.camera.width, self.camera.height))
     }
 }
 
 fn load_noise_for(path: &Path, camera: &Camera) -> Result<NoiseModel> {
     let noise = NoiseModel::load(path)?;
-    noise
-        .check_camera(camera)
-        .map_err(|m| Error::file(path, m))?;
+    noise.check_camera(camera).map_err(|m| Error::file(path, m))?;
     Ok(noise)
 }
 
@@ -255,9 +214,7 @@ fn data_lines(text: &str) -> impl Iterator<Item = (usize, Vec<&str>)> {
 }
 
 fn parse_number(path: &Path, line: usize, field: &str) -> Result<f64> {
-    field
-        .parse::<f64>()
-        .map_err(|_| Error::file(path, format!("line {line}: {field:?} is not a number")))
+    field.parse::<f64>().map_err(|_| Error::file(path, format!("line {line}: {field:?} is not a number")))
 }
 
 fn parse_depth_list(path: &Path) -> Result<Vec<(f64, PathBuf, usize)>> {
@@ -265,10 +222,7 @@ fn parse_depth_list(path: &Path) -> Result<Vec<(f64, PathBuf, usize)>> {
     let mut out = Vec::new();
     for (line, f) in data_lines(&text) {
         if f.len() < 2 {
-            return Err(Error::file(
-                path,
-                format!("line {line}: expected \"timestamp path\""),
-            ));
+            return Err(Error::file(path, format!("line {line}: expected \"timestamp path\"")));
         }
         out.push((parse_number(path, line, f[0])?, PathBuf::from(f[1]), line));
     }
@@ -283,23 +237,14 @@ fn parse_groundtruth(path: &Path) -> Result<Vec<(f64, Pose)>> {
         if f.len() != 8 {
             return Err(Error::file(
                 path,
-                format!(
-                    "line {line}: expected \"timestamp tx ty tz qx qy qz qw\", found {} fields",
-                    f.len()
-                ),
+                format!("line {line}: expected \"timestamp tx ty tz qx qy qz qw\", found {} fields", f.len()),
             ));
         }
-        let v: Vec<f64> = f
-            .iter()
-            .map(|s| parse_number(path, line, s))
-            .collect::<Result<_>>()?;
+        let v: Vec<f64> = f.iter().map(|s| parse_number(path, line, s)).collect::<Result<_>>()?;
         let (pose, normalised) = pose_from_tum([v[1], v[2], v[3]], [v[4], v[5], v[6], v[7]])
             .map_err(|m| Error::file(path, format!("line {line}: {m}")))?;
         if normalised {
-            tracing::warn!(
-                "{}: line {line}: quaternion is not unit length; normalised",
-                path.display()
-            );
+            tracing::warn!("{}: line {line}: quaternion is not unit length; normalised", path.display());
         }
         out.push((v[0], pose));
     }
@@ -341,10 +286,7 @@ mod tests {
     fn association_is_closest_first_and_one_to_one() {
         let depths = [0.0, 0.011, 1.0, 2.0];
         let poses = [0.001, 0.012, 1.5, 2.019];
-        assert_eq!(
-            associate(&depths, &poses, 0.02),
-            vec![Some(0), Some(1), None, Some(3)]
-        );
+        assert_eq!(associate(&depths, &poses, 0.02), vec![Some(0), Some(1), None, Some(3)]);
         // Two depth frames competing for one pose: the closer wins, the other is unmatched.
         assert_eq!(associate(&[0.0, 0.01], &[0.009], 0.02), vec![None, Some(0)]);
     }

@@ -14,9 +14,8 @@ use crate::frames::DepthImage;
 pub fn read_depth_png(path: &Path, depth_scale: f64, expected: (u32, u32)) -> Result<DepthImage> {
     let file = File::open(path).map_err(|e| Error::io(path, e))?;
     let bad = |m: String| Error::file(path, m);
-    let mut reader = png::Decoder::new(BufReader::new(file))
-        .read_info()
-        .map_err(|e| bad(format!("unreadable PNG: {e}")))?;
+    let mut reader =
+        png::Decoder::new(BufReader::new(file)).read_info().map_err(|e| bad(format!("unreadable PNG: {e}")))?;
     let info = reader.info();
     let (width, height) = (info.width, info.height);
     if info.bit_depth != png::BitDepth::Sixteen || info.color_type != png::ColorType::Grayscale {
@@ -26,20 +25,10 @@ pub fn read_depth_png(path: &Path, depth_scale: f64, expected: (u32, u32)) -> Re
         )));
     }
     if (width, height) != expected {
-        return Err(bad(format!(
-            "image is {width}x{height} but camera.toml says {}x{}",
-            expected.0, expected.1
-        )));
+        return Err(bad(format!("image is {width}x{height} but camera.toml says {}x{}", expected.0, expected.1)));
     }
-    let mut buf = vec![
-        0u8;
-        reader
-            .output_buffer_size()
-            .ok_or_else(|| bad("image too large".into()))?
-    ];
-    reader
-        .next_frame(&mut buf)
-        .map_err(|e| bad(format!("unreadable PNG: {e}")))?;
+    let mut buf = vec![0u8; reader.output_buffer_size().ok_or_else(|| bad("image too large".into()))?];
+    reader.next_frame(&mut buf).map_err(|e| bad(format!("unreadable PNG: {e}")))?;
     let inv = (1.0 / depth_scale) as f32;
     let data = buf
         .chunks_exact(2)
@@ -55,11 +44,7 @@ pub fn write_depth_png(path: &Path, depth: &DepthImage, depth_scale: f64) -> Res
     let mut bytes = Vec::with_capacity(depth.data().len() * 2);
     for &z in depth.data() {
         let q = (z as f64 * depth_scale).round();
-        let q = if z > 0.0 && q.is_finite() && q <= u16::MAX as f64 {
-            q as u16
-        } else {
-            0
-        };
+        let q = if z > 0.0 && q.is_finite() && q <= u16::MAX as f64 { q as u16 } else { 0 };
         bytes.extend_from_slice(&q.to_be_bytes());
     }
     crate::atomic_file::write_atomic(path, |w| {
@@ -68,9 +53,7 @@ pub fn write_depth_png(path: &Path, depth: &DepthImage, depth_scale: f64) -> Res
         enc.set_depth(png::BitDepth::Sixteen);
         enc.set_compression(png::Compression::Fast);
         let mut writer = enc.write_header().map_err(std::io::Error::other)?;
-        writer
-            .write_image_data(&bytes)
-            .map_err(std::io::Error::other)?;
+        writer.write_image_data(&bytes).map_err(std::io::Error::other)?;
         writer.finish().map_err(std::io::Error::other)
     })
 }
@@ -97,13 +80,8 @@ mod tests {
         assert!((back.get(0, 0).unwrap() - 1.2346).abs() < 1e-6);
         assert_eq!(back.get(4, 2), Some(6.5));
         assert_eq!(back.get(2, 1), None);
-        let e = read_depth_png(&p, 5000.0, (640, 480))
-            .unwrap_err()
-            .to_string();
-        assert!(
-            e.contains("rt.png") && e.contains("5x3") && e.contains("640x480"),
-            "{e}"
-        );
+        let e = read_depth_png(&p, 5000.0, (640, 480)).unwrap_err().to_string();
+        assert!(e.contains("rt.png") && e.contains("5x3") && e.contains("640x480"), "{e}");
     }
 
     #[test]
@@ -113,18 +91,12 @@ mod tests {
         let mut enc = png::Encoder::new(f, 2, 2);
         enc.set_color(png::ColorType::Rgb);
         enc.set_depth(png::BitDepth::Eight);
-        enc.write_header()
-            .unwrap()
-            .write_image_data(&[0; 12])
-            .unwrap();
+        enc.write_header().unwrap().write_image_data(&[0; 12]).unwrap();
         let e = read_depth_png(&p, 5000.0, (2, 2)).unwrap_err().to_string();
         assert!(e.contains("eight.png") && e.contains("16-bit"), "{e}");
         let g = tmp("garbage.png");
         std::fs::write(&g, b"not a png at all").unwrap();
         let e = read_depth_png(&g, 5000.0, (2, 2)).unwrap_err().to_string();
-        assert!(
-            e.contains("garbage.png") && e.contains("unreadable PNG"),
-            "{e}"
-        );
+        assert!(e.contains("garbage.png") && e.contains("unreadable PNG"), "{e}");
     }
 }

@@ -90,10 +90,7 @@ impl Shape {
         match *self {
             Shape::Box { min, max } => {
                 let x = slab(o.x, d.x, min[0], max[0]);
-                intersect(
-                    intersect(x, slab(o.y, d.y, min[1], max[1])),
-                    slab(o.z, d.z, min[2], max[2]),
-                )
+                intersect(intersect(x, slab(o.y, d.y, min[1], max[1])), slab(o.z, d.z, min[2], max[2]))
             }
             Shape::Sphere { center, radius } => {
                 let oc = o - Vector3::from(center);
@@ -218,85 +215,52 @@ impl Scene {
     pub fn from_toml(text: &str, origin: &Path) -> Result<Self> {
         let f: SceneFile = parse_toml(text, origin)?;
         let bad = |m: String| Error::file(origin, m);
-        let noise = f
-            .noise
-            .map(|v| NoiseModel::from_value(v, origin))
-            .transpose()?;
+        let noise = f.noise.map(|v| NoiseModel::from_value(v, origin)).transpose()?;
         if let Some(n) = &noise {
-            n.check_camera(&f.camera)
-                .map_err(|m| bad(format!("[noise]: {m}")))?;
+            n.check_camera(&f.camera).map_err(|m| bad(format!("[noise]: {m}")))?;
         }
         let mut shapes = Vec::new();
         for (i, b) in f.boxes.iter().enumerate() {
             if (0..3).any(|a| !(b.min[a] < b.max[a])) {
                 return Err(bad(format!("box {i}: need min < max on every axis")));
             }
-            shapes.push(Shape::Box {
-                min: b.min,
-                max: b.max,
-            });
+            shapes.push(Shape::Box { min: b.min, max: b.max });
         }
         for (i, s) in f.spheres.iter().enumerate() {
             if !(s.radius > 0.0) {
                 return Err(bad(format!("sphere {i}: radius must be positive")));
             }
-            shapes.push(Shape::Sphere {
-                center: s.center,
-                radius: s.radius,
-            });
+            shapes.push(Shape::Sphere { center: s.center, radius: s.radius });
         }
         for (i, c) in f.cylinders.iter().enumerate() {
             if !(c.radius > 0.0 && c.z[0] < c.z[1]) {
-                return Err(bad(format!(
-                    "cylinder {i}: need radius > 0 and z[0] < z[1]"
-                )));
+                return Err(bad(format!("cylinder {i}: need radius > 0 and z[0] < z[1]")));
             }
-            shapes.push(Shape::Cylinder {
-                center: c.center,
-                radius: c.radius,
-                z: c.z,
-            });
+            shapes.push(Shape::Cylinder { center: c.center, radius: c.radius, z: c.z });
         }
         let mut views = Vec::new();
         for (i, v) in f.views.iter().enumerate() {
             views.push(
-                look_at(Vector3::from(v.eye), Vector3::from(v.target))
-                    .map_err(|m| bad(format!("view {i}: {m}")))?,
+                look_at(Vector3::from(v.eye), Vector3::from(v.target)).map_err(|m| bad(format!("view {i}: {m}")))?,
             );
         }
         if let Some(o) = &f.orbit {
             if !views.is_empty() {
-                return Err(bad(
-                    "give either [[view]] entries or an [orbit], not both".into()
-                ));
+                return Err(bad("give either [[view]] entries or an [orbit], not both".into()));
             }
             if o.views == 0 || !(o.radius > 0.0) {
                 return Err(bad("[orbit]: need views >= 1 and radius > 0".into()));
             }
             for k in 0..o.views {
                 let a = std::f64::consts::TAU * k as f64 / o.views as f64;
-                let eye = Vector3::new(
-                    o.center[0] + o.radius * a.cos(),
-                    o.center[1] + o.radius * a.sin(),
-                    o.height,
-                );
-                views.push(
-                    look_at(eye, Vector3::from(o.center))
-                        .map_err(|m| bad(format!("[orbit] view {k}: {m}")))?,
-                );
+                let eye = Vector3::new(o.center[0] + o.radius * a.cos(), o.center[1] + o.radius * a.sin(), o.height);
+                views.push(look_at(eye, Vector3::from(o.center)).map_err(|m| bad(format!("[orbit] view {k}: {m}")))?);
             }
         }
         if views.is_empty() {
-            return Err(bad(
-                "no viewpoints: add [[view]] entries or an [orbit]".into()
-            ));
+            return Err(bad("no viewpoints: add [[view]] entries or an [orbit]".into()));
         }
-        Ok(Scene {
-            camera: f.camera,
-            noise,
-            shapes,
-            views,
-        })
+        Ok(Scene { camera: f.camera, noise, shapes, views })
     }
 
     /// Ground-truth occupancy: is `p` inside any solid?
@@ -311,21 +275,14 @@ impl Scene {
         let cam = &self.camera;
         let rot = pose.rotation.to_rotation_matrix();
         let eye = pose.translation.vector;
-        let (min_z, max_z) = (
-            cam.min_depth.unwrap_or(0.0),
-            cam.max_depth.unwrap_or(f64::INFINITY),
-        );
+        let (min_z, max_z) = (cam.min_depth.unwrap_or(0.0), cam.max_depth.unwrap_or(f64::INFINITY));
         let w = cam.width as usize;
         let mut data = vec![0f32; cam.pixel_count()];
         data.par_chunks_mut(w).enumerate().for_each(|(v, row)| {
             for (u, out) in row.iter_mut().enumerate() {
                 // With the camera ray scaled to z = 1, the ray parameter is the z-depth.
                 let d = rot * cam.pixel_ray(u as f64, v as f64);
-                let z = self
-                    .shapes
-                    .iter()
-                    .filter_map(|s| s.first_hit(&eye, &d))
-                    .fold(f64::INFINITY, f64::min);
+                let z = self.shapes.iter().filter_map(|s| s.first_hit(&eye, &d)).fold(f64::INFINITY, f64::min);
                 if z > 0.0 && z >= min_z && z <= max_z && z.is_finite() {
                     *out = z as f32;
                 }
@@ -378,34 +335,16 @@ mod tests {
     #[test]
     fn first_hit_agrees_with_marching() {
         let shapes = [
-            Shape::Box {
-                min: [-0.5, -0.3, 0.0],
-                max: [0.4, 0.6, 0.8],
-            },
-            Shape::Sphere {
-                center: [0.1, -0.2, 0.3],
-                radius: 0.45,
-            },
-            Shape::Cylinder {
-                center: [0.2, 0.1],
-                radius: 0.25,
-                z: [-0.2, 0.7],
-            },
+            Shape::Box { min: [-0.5, -0.3, 0.0], max: [0.4, 0.6, 0.8] },
+            Shape::Sphere { center: [0.1, -0.2, 0.3], radius: 0.45 },
+            Shape::Cylinder { center: [0.2, 0.1], radius: 0.25, z: [-0.2, 0.7] },
         ];
         let mut rng = Rng::new(21);
         let h = 1e-4;
         for s in &shapes {
             for _ in 0..300 {
-                let o = Vector3::new(
-                    rng.range(-2.0, 2.0),
-                    rng.range(-2.0, 2.0),
-                    rng.range(-2.0, 2.0),
-                );
-                let target = Vector3::new(
-                    rng.range(-0.6, 0.6),
-                    rng.range(-0.6, 0.6),
-                    rng.range(-0.4, 0.9),
-                );
+                let o = Vector3::new(rng.range(-2.0, 2.0), rng.range(-2.0, 2.0), rng.range(-2.0, 2.0));
+                let target = Vector3::new(rng.range(-0.6, 0.6), rng.range(-0.6, 0.6), rng.range(-0.4, 0.9));
                 let d = (target - o).normalize();
                 let exact = s.first_hit(&o, &d).filter(|t| *t <= 5.0);
                 let reference = marched(s, &o, &d, 5.0, h);
@@ -415,10 +354,7 @@ mod tests {
                     // Grazing rays may slip between samples.
                     (Some(a), None) => {
                         let (lo, hi) = s.interval(&o, &d).unwrap();
-                        assert!(
-                            hi - lo < 2.0 * h || a > 5.0 - h,
-                            "{s:?}: missed by marching"
-                        );
+                        assert!(hi - lo < 2.0 * h || a > 5.0 - h, "{s:?}: missed by marching");
                     }
                     (None, Some(b)) => panic!("{s:?}: exact missed a hit at {b}"),
                 }
@@ -428,23 +364,15 @@ mod tests {
 
     #[test]
     fn orbit_and_errors() {
-        let base = "[camera]\nfx = 50.0\nfy = 50.0\ncx = 15.5\ncy = 11.5\nwidth = 32\nheight = 24\ndepth_scale = 5000.0\n";
-        let orbit = format!(
-            "{base}[orbit]\ncenter = [0.0, 0.0, 0.5]\nradius = 2.0\nheight = 1.5\nviews = 4\n"
-        );
+        let base =
+            "[camera]\nfx = 50.0\nfy = 50.0\ncx = 15.5\ncy = 11.5\nwidth = 32\nheight = 24\ndepth_scale = 5000.0\n";
+        let orbit = format!("{base}[orbit]\ncenter = [0.0, 0.0, 0.5]\nradius = 2.0\nheight = 1.5\nviews = 4\n");
         let scene = Scene::from_toml(&orbit, Path::new("s.toml")).unwrap();
         assert_eq!(scene.views.len(), 4);
         let first = scene.views[0].translation.vector;
         assert!((first - Vector3::new(2.0, 0.0, 1.5)).norm() < 1e-12);
-        let e = Scene::from_toml(
-            &format!("{orbit}[[pyramid]]\nsize = 1\n"),
-            Path::new("s.toml"),
-        )
-        .unwrap_err();
-        assert!(
-            e.to_string().contains("s.toml") && e.to_string().contains("pyramid"),
-            "{e}"
-        );
+        let e = Scene::from_toml(&format!("{orbit}[[pyramid]]\nsize = 1\n"), Path::new("s.toml")).unwrap_err();
+        assert!(e.to_string().contains("s.toml") && e.to_string().contains("pyramid"), "{e}");
         let e = Scene::from_toml(base, Path::new("s.toml")).unwrap_err();
         assert!(e.to_string().contains("no viewpoints"), "{e}");
     }

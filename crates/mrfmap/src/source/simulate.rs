@@ -33,16 +33,8 @@ pub fn simulate(scene: &Scene, out: &Path, seed: u64) -> Result<SimulationSummar
         valid_pixels += truth.valid_count();
         let noisy = scene.add_noise(&truth, seed, i);
         let name = format!("{i:06}.png");
-        write_depth_png(
-            &out.join("gt_depth").join(&name),
-            &truth,
-            scene.camera.depth_scale,
-        )?;
-        write_depth_png(
-            &out.join("depth").join(&name),
-            &noisy,
-            scene.camera.depth_scale,
-        )?;
+        write_depth_png(&out.join("gt_depth").join(&name), &truth, scene.camera.depth_scale)?;
+        write_depth_png(&out.join("depth").join(&name), &noisy, scene.camera.depth_scale)?;
         let t = i as f64;
         depth_list.push_str(&format!("{t:.6} depth/{name}\n"));
         let p = pose_to_tum(pose);
@@ -61,8 +53,5 @@ pub fn simulate(scene: &Scene, out: &Path, seed: u64) -> Result<SimulationSummar
     ] {
         write_atomic(&out.join(name), |w| w.write_all(text.as_bytes()))?;
     }
-    Ok(SimulationSummary {
-        frames: scene.views.len(),
-        valid_pixels,
-    })
+    Ok(SimulationSummary { frames: scene.views.len(), valid_pixels })
 }

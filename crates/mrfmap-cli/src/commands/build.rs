@@ -1,0 +1,107 @@
+//! `mrfmap build`: dataset in, map file out.
+
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail};
+use mrfmap::inference::{EngineConfig, EngineKind, new_engine};
+use mrfmap::map::Map;
+use mrfmap::rays::{Aabb, RayLimits};
+use mrfmap::source::Dataset;
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// Dataset folder (TUM / ICL-NUIM layout with camera.toml).
+    dataset: PathBuf,
+    /// Output map file.
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Inference engine.
+    #[arg(long, default_value = "logodds")]
+    engine: String,
+    /// Voxel edge in metres.
+    #[arg(long, value_parser = super::positive, allow_hyphen_values = true)]
+    resolution: f64,
+    /// Frame indices to leave out (held-out views), e.g. 3,7.
+    #[arg(long, value_delimiter = ',')]
+    exclude: Vec<usize>,
+    /// Only these frame indices (default: all).
+    #[arg(long, value_delimiter = ',')]
+    frames: Vec<usize>,
+    /// Cut readings beyond this range (metres); they then mark free space only.
+    #[arg(long, value_parser = super::positive, allow_hyphen_values = true)]
+    max_range: Option<f64>,
+    /// Map only this box: XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX (metres).
+    #[arg(long, allow_hyphen_values = true)]
+    bounds: Option<String>,
+    /// Noise model file (default: the dataset's noise.toml when present).
+    #[arg(long)]
+    noise: Option<PathBuf>,
+}
+
+/// What a build did.
+pub struct BuildReport {
+    pub map: Map,
+    pub frames: usize,
+    pub integrate_time: Duration,
+}
+
+/// The frames to use: `frames` (or all) minus `exclude`; indices must exist.
+pub fn select_frames(len: usize, frames: &[usize], exclude: &[usize]) -> Result<Vec<usize>> {
+    for &i in frames.iter().chain(exclude) {
+        if i >= len {
+            bail!("frame index {i} is out of range: the dataset has {len} frames (0..{})", len - 1);
+        }
+    }
+    let chosen: Vec<usize> = if frames.is_empty() { (0..len).collect() } else { frames.to_vec() };
+    let chosen: Vec<usize> = chosen.into_iter().filter(|i| !exclude.contains(i)).collect();
+    if chosen.is_empty() {
+        bail!("no frames left to integrate after --frames / --exclude");
+    }
+    Ok(chosen)
+}
+
+/// Integrates `indices` of `dataset` with the engine `config` describes, with a progress bar.
+pub fn build_map(dataset: &Dataset, indices: &[usize], config: &EngineConfig) -> Result<BuildReport> {
+    let mut engine = new_engine(config)?;
+    let bar = crate::progress::bar(indices.len() as u64, config.kind.name());
+    let mut integrate_time = Duration::ZERO;
+    for &i in indices {
+        let frame = dataset.frame(i)?;
+        let t = Instant::now();
+        engine.integrate(&frame).with_context(|| format!("integrating frame {i}"))?;
+        integrate_time += t.elapsed();
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    Ok(BuildReport { map: engine.map(), frames: indices.len(), integrate_time })
+}
+
+pub fn run(a: Args) -> Result<()> {
+    let kind: EngineKind = a.engine.parse()?;
+    let bounds = a.bounds.as_deref().map(Aabb::parse).transpose()?;
+    let mut dataset = Dataset::open(&a.dataset)?;
+    if let Some(n) = &a.noise {
+        dataset.set_noise_file(n)?;
+    }
+    let indices = select_frames(dataset.len(), &a.frames, &a.exclude)?;
+    let config = EngineConfig { kind, resolution: a.resolution, limits: RayLimits { max_range: a.max_range, bounds } };
+    tracing::info!(
+        "{}: {} of {} frames, engine {kind}, resolution {} m",
+        a.dataset.display(),
+        indices.len(),
+        dataset.len(),
+        a.resolution
+    );
+    let report = build_map(&dataset, &indices, &config)?;
+    report.map.save(&a.output)?;
+    println!(
+        "{}: {} frames, {} voxels ({} occupied), {:.1} ms/frame",
+        a.output.display(),
+        report.frames,
+        report.map.voxels.len(),
+        report.map.occupied_count(),
+        report.integrate_time.as_secs_f64() * 1e3 / report.frames as f64
+    );
+    Ok(())
+}

@@ -1,0 +1,245 @@
+//! End-to-end tests of the `mrfmap` binary: the happy path on a small simulated scene and
+//! every kind of bad input the README promises a clear error for.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+const SCENE: &str = r#"
+[camera]
+fx = 60.0
+fy = 60.0
+cx = 39.5
+cy = 29.5
+width = 80
+height = 60
+depth_scale = 5000.0
+min_depth = 0.2
+max_depth = 6.0
+[noise]
+bias = [0.0, 0.0, 0.002]
+std = [0.002, 0.0, 0.002]
+[[box]]
+min = [-2.0, -2.0, -0.1]
+max = [2.0, 2.0, 0.0]
+[[box]]
+min = [-0.3, -0.3, 0.0]
+max = [0.3, 0.3, 0.6]
+[[sphere]]
+center = [0.8, 0.0, 0.3]
+radius = 0.3
+[orbit]
+center = [0.0, 0.0, 0.3]
+radius = 2.0
+height = 1.2
+views = 4
+"#;
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_mrfmap"))
+}
+
+fn run(args: &[&str]) -> Output {
+    bin().args(args).output().expect("runs")
+}
+
+fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+fn stdout(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+/// A fresh folder per test.
+fn workdir(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("mrfmap-cli-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// Writes the scene and simulates it into `dir/data`.
+fn dataset(dir: &Path) -> PathBuf {
+    let scene = dir.join("scene.toml");
+    std::fs::write(&scene, SCENE).unwrap();
+    let data = dir.join("data");
+    let o = run(&["simulate", scene.to_str().unwrap(), data.to_str().unwrap(), "--seed", "3"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    data
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+/// Runs `build` and asserts it fails with a message containing every `needle`, leaving no map.
+fn build_fails(data: &Path, extra: &[&str], needles: &[&str]) {
+    let out = data.parent().unwrap().join("fail.mrfmap");
+    let mut args = vec!["build", s(data), "-o", s(&out), "--resolution", "0.05"];
+    args.extend_from_slice(extra);
+    let o = run(&args);
+    let err = stderr(&o);
+    assert!(!o.status.success(), "expected failure for {args:?}");
+    for n in needles {
+        assert!(err.contains(n), "error {err:?} should mention {n:?}");
+    }
+    assert!(!err.contains("panicked"), "{err}");
+    assert!(!out.exists(), "a failed build must not leave a map");
+}
+
+#[test]
+fn simulate_build_info_export() {
+    let dir = workdir("happy");
+    let data = dataset(&dir);
+    for f in ["depth/000003.png", "gt_depth/000000.png", "depth.txt", "groundtruth.txt", "camera.toml", "noise.toml"] {
+        assert!(data.join(f).is_file(), "{f} missing");
+    }
+    let map = dir.join("m.mrfmap");
+    let o = run(&["build", s(&data), "-o", s(&map), "--resolution", "0.05", "--exclude", "1", "-q"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stdout(&o).contains("3 frames"), "{}", stdout(&o));
+    let o = run(&["info", s(&map)]);
+    let info = stdout(&o);
+    assert!(o.status.success() && info.contains("logodds") && info.contains("0.05 m"), "{info}");
+    let ply = dir.join("m.ply");
+    let o = run(&["export", s(&map), "--ply", s(&ply), "--occupied-only"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let v = mrfmap::outputs::read_ply(&ply).unwrap();
+    assert_eq!(v.resolution, Some(0.05));
+    let occ = v.column("occupancy").unwrap();
+    assert!(v.rows.len() > 100 && v.rows.iter().all(|r| r[occ] > 0.5));
+    let loaded = mrfmap::map::Map::load(&map).unwrap();
+    assert_eq!(loaded.occupied_count(), v.rows.len());
+
+    // Same seed, same data; the scene's box is mapped as occupied.
+    let again = dir.join("again");
+    let o = run(&["simulate", s(&dir.join("scene.toml")), s(&again), "--seed", "3"]);
+    assert!(o.status.success());
+    assert_eq!(
+        std::fs::read(data.join("depth/000002.png")).unwrap(),
+        std::fs::read(again.join("depth/000002.png")).unwrap()
+    );
+    // View 2 looks at the box's -x face (x = -0.3) head-on: a voxel there is occupied.
+    let face = [-0.32, -0.29, -0.26].iter().filter_map(|x| loaded.occupancy_at([*x, 0.02, 0.3])).fold(0.0f32, f32::max);
+    assert!(face > 0.5, "box face occupancy {face}");
+    assert!(loaded.occupancy_at([-0.6, 0.02, 0.3]).is_some_and(|p| p < 0.5), "free space in front of the face");
+
+    // Bounds, frames, max range and threads are accepted.
+    let o = run(&[
+        "build",
+        s(&data),
+        "-o",
+        s(&map),
+        "--resolution",
+        "0.1",
+        "--frames",
+        "0,2",
+        "--max-range",
+        "3",
+        "--bounds",
+        "-1,-1,-0.5,1,1,1",
+        "--threads",
+        "1",
+        "-q",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let (lo, hi) = mrfmap::map::Map::load(&map).unwrap().bounds().unwrap();
+    assert!(lo.iter().all(|v| *v >= -1.1) && hi.iter().all(|v| *v <= 1.1), "{lo:?} {hi:?}");
+}
+
+#[test]
+fn bad_dataset_files_give_clear_errors() {
+    let dir = workdir("bad");
+    let data = dataset(&dir);
+    let cam = std::fs::read_to_string(data.join("camera.toml")).unwrap();
+    let gt = std::fs::read_to_string(data.join("groundtruth.txt")).unwrap();
+    let depth_list = std::fs::read_to_string(data.join("depth.txt")).unwrap();
+
+    std::fs::remove_file(data.join("camera.toml")).unwrap();
+    build_fails(&data, &[], &["camera.toml", "missing"]);
+    std::fs::write(data.join("camera.toml"), cam.replace("fx = ", "focal = ")).unwrap();
+    build_fails(&data, &[], &["camera.toml", "focal"]);
+    std::fs::write(data.join("camera.toml"), cam.replace("width = 80", "width = 81")).unwrap();
+    build_fails(&data, &[], &["000000.png", "80x60", "81x60"]);
+    std::fs::write(data.join("camera.toml"), &cam).unwrap();
+
+    // 8-bit RGB PNG where 16-bit depth is expected, and a file that is not a PNG.
+    let png_path = data.join("depth/000000.png");
+    let good_png = std::fs::read(&png_path).unwrap();
+    {
+        let f = std::fs::File::create(&png_path).unwrap();
+        let mut enc = png::Encoder::new(f, 80, 60);
+        enc.set_color(png::ColorType::Rgb);
+        enc.set_depth(png::BitDepth::Eight);
+        enc.write_header().unwrap().write_image_data(&vec![0; 80 * 60 * 3]).unwrap();
+    }
+    build_fails(&data, &[], &["000000.png", "16-bit"]);
+    std::fs::write(&png_path, b"\x89PNG garbage").unwrap();
+    build_fails(&data, &[], &["000000.png", "unreadable PNG"]);
+    std::fs::write(&png_path, &good_png).unwrap();
+
+    // NaN in a pose; a non-unit quaternion is normalised with a warning.
+    let mut lines: Vec<String> = gt.lines().map(String::from).collect();
+    let fields: Vec<&str> = lines[1].split_whitespace().collect();
+    let nan_line = format!("{} nan {}", fields[0], fields[2..].join(" "));
+    let doubled: Vec<String> = fields[4..].iter().map(|q| format!("{}", q.parse::<f64>().unwrap() * 2.0)).collect();
+    let scaled_line = format!("{} {}", fields[..4].join(" "), doubled.join(" "));
+    lines[1] = nan_line;
+    std::fs::write(data.join("groundtruth.txt"), lines.join("\n")).unwrap();
+    build_fails(&data, &[], &["groundtruth.txt", "line 2", "NaN"]);
+    lines[1] = scaled_line;
+    std::fs::write(data.join("groundtruth.txt"), lines.join("\n")).unwrap();
+    let map = dir.join("ok.mrfmap");
+    let o = run(&["build", s(&data), "-o", s(&map), "--resolution", "0.1"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stderr(&o).contains("normalised"), "{}", stderr(&o));
+
+    // No pose near any frame; then an empty dataset; then a listed frame that is missing.
+    std::fs::write(data.join("groundtruth.txt"), "100.0 0 0 0 0 0 0 1\n").unwrap();
+    build_fails(&data, &[], &["groundtruth.txt", "no depth frame matched"]);
+    std::fs::write(data.join("groundtruth.txt"), &gt).unwrap();
+    std::fs::write(data.join("depth.txt"), "# nothing here\n").unwrap();
+    build_fails(&data, &[], &["depth.txt", "empty dataset"]);
+    std::fs::write(data.join("depth.txt"), depth_list.replace("000002.png", "000099.png")).unwrap();
+    build_fails(&data, &[], &["depth.txt", "000099.png", "does not exist"]);
+    std::fs::write(data.join("depth.txt"), &depth_list).unwrap();
+
+    // Bad arguments.
+    build_fails(&data, &["--engine", "octopus"], &["unknown engine", "logodds"]);
+    build_fails(&data, &["--exclude", "9"], &["frame index 9", "4 frames"]);
+    build_fails(&data, &["--bounds", "1,2,3"], &["bounds"]);
+    std::fs::write(dir.join("noise-bad.toml"), "bias = [0.0]\nstd = [0.01]\ncolour = 3\n").unwrap();
+    build_fails(&data, &["--noise", s(&dir.join("noise-bad.toml"))], &["noise-bad.toml", "colour"]);
+    let o = run(&["build", s(&data), "-o", s(&map), "--resolution", "0"]);
+    assert!(!o.status.success() && stderr(&o).contains("positive"), "{}", stderr(&o));
+    let o = run(&["build", s(&data), "-o", s(&map), "--resolution", "-0.1"]);
+    assert!(!o.status.success() && stderr(&o).contains("positive"), "{}", stderr(&o));
+}
+
+#[test]
+fn bad_scene_and_map_files_give_clear_errors() {
+    let dir = workdir("scene");
+    let scene = dir.join("scene.toml");
+    std::fs::write(&scene, format!("{SCENE}\n[[pyramid]]\nheight = 1.0\n")).unwrap();
+    let o = run(&["simulate", s(&scene), s(&dir.join("out"))]);
+    assert!(
+        !o.status.success() && stderr(&o).contains("scene.toml") && stderr(&o).contains("pyramid"),
+        "{}",
+        stderr(&o)
+    );
+    std::fs::write(&scene, SCENE.replace("radius = 0.3", "radius = -0.3")).unwrap();
+    let o = run(&["simulate", s(&scene), s(&dir.join("out"))]);
+    assert!(!o.status.success() && stderr(&o).contains("sphere 0"), "{}", stderr(&o));
+
+    let not_map = dir.join("not.mrfmap");
+    std::fs::write(&not_map, "ply\nformat ascii 1.0\n").unwrap();
+    let o = run(&["info", s(&not_map)]);
+    assert!(
+        !o.status.success() && stderr(&o).contains("not.mrfmap") && stderr(&o).contains("not an mrfmap"),
+        "{}",
+        stderr(&o)
+    );
+    let o = run(&["export", s(&dir.join("absent.mrfmap")), "--ply", s(&dir.join("x.ply"))]);
+    assert!(!o.status.success() && stderr(&o).contains("absent.mrfmap"), "{}", stderr(&o));
+    assert!(!dir.join("x.ply").exists());
+}

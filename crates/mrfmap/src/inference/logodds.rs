@@ -12,8 +12,8 @@ use rustc_hash::FxHashMap;
 use super::Engine;
 use crate::error::{Error, Result};
 use crate::frames::Frame;
-use crate::map::{BrickKey, Grid, Map, MapVoxel, SlotMask, VoxelKey, mask_slots};
-use crate::rays::{FrameRays, PixelRay, RayLimits, traverse};
+use crate::map::{BrickKey, Grid, Map, MapVoxel, SlotMask, mask_slots};
+use crate::rays::{FrameRays, PixelRay, RayLimits, for_each_crossing};
 
 /// OctoMap's sensor model parameters (probabilities).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -171,54 +171,48 @@ impl ScanMarks {
     }
 }
 
-/// Marks voxels for a run of rays, caching the last brick: consecutive voxels of a ray
+/// Marks voxels for a run of rays, caching the current brick: consecutive voxels of a ray
 /// are usually in the same brick, so most marks skip the hash lookup.
 #[derive(Default)]
 struct RowMarker {
     index: FxHashMap<BrickKey, u32>,
     marks: Vec<(BrickKey, BrickMarks)>,
-    last: Option<(BrickKey, u32)>,
 }
 
 impl RowMarker {
-    #[inline]
-    fn brick(&mut self, key: BrickKey) -> &mut BrickMarks {
-        let i = match self.last {
-            Some((k, i)) if k == key => i,
-            _ => {
-                let next = self.marks.len() as u32;
-                let i = *self.index.entry(key).or_insert(next);
-                if i == next {
-                    self.marks.push((key, BrickMarks::default()));
-                }
-                self.last = Some((key, i));
-                i
-            }
-        };
-        &mut self.marks[i as usize].1
-    }
-
-    #[inline]
-    fn mark(&mut self, key: VoxelKey, hit: bool) {
-        let slot = key.slot();
-        let m = self.brick(key.brick());
-        let mask = if hit { &mut m.hit } else { &mut m.free };
-        mask[slot >> 6] |= 1 << (slot & 63);
+    /// Index of `key`'s marks, adding an empty entry for a new brick.
+    #[inline(never)]
+    fn lookup(&mut self, key: BrickKey) -> usize {
+        let next = self.marks.len() as u32;
+        let i = *self.index.entry(key).or_insert(next);
+        if i == next {
+            self.marks.push((key, BrickMarks::default()));
+        }
+        i as usize
     }
 
     fn mark_ray(&mut self, ray: &PixelRay, resolution: f64, limits: &RayLimits) {
-        let Some(seg) = limits.segment(ray, 0.0) else {
-            return;
-        };
+        let Some(seg) = limits.segment(ray, 0.0) else { return };
+        // Every crossed voxel is marked free, the last one (holding the endpoint) also
+        // occupied when the ray reached its surface: occupied wins when the scan is applied.
+        let mut current: Option<(BrickKey, usize)> = None;
         let mut last = None;
-        for c in traverse(ray.origin, ray.dir, seg.start, seg.end, resolution) {
-            if let Some(k) = last.replace(c.key) {
-                self.mark(k, false);
-            }
-        }
-        // The last voxel holds the endpoint: occupied if the ray reached its surface.
-        if let Some(k) = last {
-            self.mark(k, seg.hits_surface);
+        for_each_crossing(ray.origin, ray.dir, seg.start, seg.end, resolution, |c| {
+            let brick = c.key.brick();
+            let i = match current {
+                Some((k, i)) if k == brick => i,
+                _ => {
+                    let i = self.lookup(brick);
+                    current = Some((brick, i));
+                    i
+                }
+            };
+            let slot = c.key.slot();
+            self.marks[i].1.free[slot >> 6] |= 1 << (slot & 63);
+            last = Some((i, slot));
+        });
+        if let (Some((i, slot)), true) = (last, seg.hits_surface) {
+            self.marks[i].1.hit[slot >> 6] |= 1 << (slot & 63);
         }
     }
 
@@ -231,6 +225,7 @@ impl RowMarker {
 mod tests {
     use super::*;
     use crate::frames::{Camera, DepthImage, look_at};
+    use crate::map::VoxelKey;
     use nalgebra::Vector3;
 
     /// A frame of a small camera at the origin looking along +x at a wall `dist` away.

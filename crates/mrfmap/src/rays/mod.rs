@@ -2,12 +2,12 @@
 //!
 //! [`FrameRays`] turns each valid depth pixel into a [`PixelRay`] (origin, unit direction,
 //! measured range, and the `cz` that converts range to z-depth for the noise model).
-//! [`RayLimits`] applies the user's max range and bounding box, and [`traverse`] walks the
+//! [`RayLimits`] applies the user's max range and bounding box, and [`for_each_crossing`] walks the
 //! voxels of the resulting segment. Every engine consumes rays through these three pieces.
 
 mod traversal;
 
-pub use traversal::{Crossing, Traversal, traverse};
+pub use traversal::{Crossing, crossings, for_each_crossing};
 
 use nalgebra::Matrix3;
 

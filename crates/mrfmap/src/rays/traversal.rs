@@ -76,30 +76,43 @@ pub fn for_each_crossing(
             t_delta[a] = resolution / dir[a].abs();
         }
     }
+    // Scalars, not arrays indexed by axis: indexed arrays live on the stack and every step
+    // then waits on a store-to-load round trip (measured 7.5 -> 4 ns per voxel).
+    let [mut tx, mut ty, mut tz] = t_max;
+    let [mut kx, mut ky, mut kz] = key;
     let mut s = s_start;
     loop {
         // Step exactly one axis: x on ties with x, else y on ties with y.
-        let a = if t_max[0] <= t_max[1] && t_max[0] <= t_max[2] {
-            0
-        } else if t_max[1] <= t_max[2] {
-            1
+        let step_x = tx <= ty && tx <= tz;
+        let step_y = !step_x && ty <= tz;
+        let exit = if step_x {
+            tx
+        } else if step_y {
+            ty
         } else {
-            2
+            tz
         };
-        let exit = t_max[a];
         if exit >= s_end {
             if s_end > s {
-                visit(Crossing { key: VoxelKey(key), s_in: s, s_out: s_end });
+                visit(Crossing { key: VoxelKey([kx, ky, kz]), s_in: s, s_out: s_end });
             }
             return;
         }
         // Zero length (edge/corner touch, or a start on a face): skip the voxel.
         if exit > s {
-            visit(Crossing { key: VoxelKey(key), s_in: s, s_out: exit });
+            visit(Crossing { key: VoxelKey([kx, ky, kz]), s_in: s, s_out: exit });
             s = exit;
         }
-        key[a] += step[a];
-        t_max[a] += t_delta[a];
+        if step_x {
+            kx += step[0];
+            tx += t_delta[0];
+        } else if step_y {
+            ky += step[1];
+            ty += t_delta[1];
+        } else {
+            kz += step[2];
+            tz += t_delta[2];
+        }
     }
 }
 

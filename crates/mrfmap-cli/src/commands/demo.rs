@@ -1,5 +1,6 @@
 //! `mrfmap demo`: the end-to-end tour on the bundled scene.
 
+use std::io::Write;
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -25,7 +26,7 @@ pub fn run(a: Args) -> Result<()> {
     let out = &a.out_dir;
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let scene_path = out.join("scene.toml");
-    std::fs::write(&scene_path, DEMO_SCENE).with_context(|| format!("writing {}", scene_path.display()))?;
+    mrfmap::atomic_file::write_atomic(&scene_path, |w| w.write_all(DEMO_SCENE.as_bytes()))?;
     let scene = Scene::load(&scene_path)?;
 
     let t = Instant::now();

@@ -1,10 +1,16 @@
-//! The log-odds occupancy grid with OctoMap's update semantics (ALGORITHMS.md 5.1).
+//! The log-odds occupancy grid (ALGORITHMS.md 5.1), with two inverse sensor models.
 //!
-//! Per scan, as `OcTree::insertPointCloud`: every voxel a ray crosses before its endpoint is
-//! marked *free*, the endpoint voxel *occupied*; a voxel that is both in one scan counts as
-//! occupied; then each marked voxel is updated exactly once. Rays are traced in parallel
-//! (rayon, by image row) into per-task brick bitmasks that are OR-ed together, so the
-//! result is a set and identical for any thread count.
+//! [`SensorModel::HitMiss`] is OctoMap's `insertPointCloud`: per scan, every voxel a ray
+//! crosses before its endpoint is marked *free*, the endpoint voxel *occupied*; a voxel that
+//! is both in one scan counts as occupied; then each marked voxel is updated exactly once.
+//! Rays are traced in parallel (rayon, by image row) into per-task brick bitmasks that are
+//! OR-ed together, so the result is a set and identical for any thread count.
+//!
+//! [`SensorModel::Ramp`] is the parametric model of the CRM paper's Fig. 1, used in its
+//! comparisons and parameter sweeps. Per scan each voxel is updated once, by the ray that
+//! passes closest to its centre (the classic occupancy-grid rule of Thrun et al., which
+//! picks the beam nearest in bearing), ties broken by pixel index, so it too is identical
+//! for any thread count. It is meant for the papers' experiments, not for speed.
 
 use rayon::prelude::*;
 use rustc_hash::FxHashMap;
@@ -12,25 +18,92 @@ use rustc_hash::FxHashMap;
 use super::Engine;
 use crate::error::{Error, Result};
 use crate::frames::Frame;
-use crate::map::{BrickKey, Grid, Map, MapVoxel, SlotMask, mask_slots};
+use crate::map::{BrickKey, Grid, Map, MapVoxel, SlotMask, VoxelKey, mask_slots};
 use crate::rays::{FrameRays, PixelRay, RayLimits, for_each_crossing};
 
-/// OctoMap's sensor model parameters (probabilities).
+/// How one ray changes the voxels it crosses (occupancy probabilities, turned into log-odds).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum SensorModel {
+    /// OctoMap: `p_miss` for crossed voxels, `p_hit` for the endpoint voxel (defaults 0.7 / 0.4).
+    HitMiss {
+        /// Probability for the endpoint voxel.
+        p_hit: f64,
+        /// Probability for crossed voxels.
+        p_miss: f64,
+    },
+    /// CRM Fig. 1: `q_low` up to `z - r_ramp/2`, a linear ramp to `q_high` at `z + r_ramp/2`,
+    /// `q_high` up to `z + r_ramp/2 + r_top`, no update beyond (`z` = measured range). The
+    /// CRM paper's best setting: `r_ramp = r_top = 0.1`, `q_low = 0.45`, `q_high = 0.55`.
+    Ramp {
+        /// Probability in front of the surface.
+        q_low: f64,
+        /// Probability at and just behind the surface.
+        q_high: f64,
+        /// Width of the ramp (m).
+        r_ramp: f64,
+        /// Depth of the occupied plateau behind the ramp (m).
+        r_top: f64,
+    },
+}
+
+impl SensorModel {
+    /// OctoMap's defaults.
+    pub const OCTOMAP: SensorModel = SensorModel::HitMiss { p_hit: 0.7, p_miss: 0.4 };
+
+    /// The CRM paper's best ramp setting.
+    pub const CRM_PAPER: SensorModel = SensorModel::Ramp { q_low: 0.45, q_high: 0.55, r_ramp: 0.1, r_top: 0.1 };
+
+    /// Occupancy probability of the ramp model at range `s` for a surface at `z` (`None` beyond
+    /// the plateau, and for [`SensorModel::HitMiss`], which has no range profile).
+    ///
+    /// ```
+    /// use mrfmap::inference::SensorModel;
+    /// let m = SensorModel::CRM_PAPER;
+    /// assert_eq!(m.ramp_probability(1.0, 2.0), Some(0.45));
+    /// assert!((m.ramp_probability(2.0, 2.0).unwrap() - 0.5).abs() < 1e-12);
+    /// assert_eq!(m.ramp_probability(2.1, 2.0), Some(0.55));
+    /// assert_eq!(m.ramp_probability(2.2, 2.0), None);
+    /// ```
+    pub fn ramp_probability(&self, s: f64, z: f64) -> Option<f64> {
+        let SensorModel::Ramp { q_low, q_high, r_ramp, r_top } = *self else { return None };
+        let (a, b) = (z - 0.5 * r_ramp, z + 0.5 * r_ramp);
+        if s < a {
+            Some(q_low)
+        } else if s < b {
+            Some(q_low + (q_high - q_low) * (s - a) / r_ramp)
+        } else {
+            (s <= b + r_top).then_some(q_high)
+        }
+    }
+
+    fn validate(&self) -> std::result::Result<(), String> {
+        let probs_ok = |ps: &[f64]| ps.iter().all(|p| *p > 0.0 && *p < 1.0);
+        match *self {
+            SensorModel::HitMiss { p_hit, p_miss } if probs_ok(&[p_hit, p_miss]) => Ok(()),
+            SensorModel::Ramp { q_low, q_high, r_ramp, r_top }
+                if probs_ok(&[q_low, q_high]) && r_ramp > 0.0 && r_top >= 0.0 =>
+            {
+                Ok(())
+            }
+            m => Err(format!("sensor model needs probabilities in (0, 1) and r_ramp > 0, r_top >= 0: {m:?}")),
+        }
+    }
+}
+
+/// Parameters of the log-odds engine.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct LogOddsParams {
-    /// Probability added for an endpoint (OctoMap: 0.7).
-    pub p_hit: f64,
-    /// Probability added for a traversed voxel (OctoMap: 0.4).
-    pub p_miss: f64,
-    /// Lower clamp (OctoMap: 0.1192).
+    /// The inverse sensor model (default: OctoMap's hit/miss).
+    pub model: SensorModel,
+    /// Lower clamp as a probability (OctoMap: 0.1192).
     pub clamp_min: f64,
-    /// Upper clamp (OctoMap: 0.971).
+    /// Upper clamp as a probability (OctoMap: 0.971).
     pub clamp_max: f64,
 }
 
 impl Default for LogOddsParams {
     fn default() -> Self {
-        LogOddsParams { p_hit: 0.7, p_miss: 0.4, clamp_min: 0.1192, clamp_max: 0.971 }
+        LogOddsParams { model: SensorModel::OCTOMAP, clamp_min: 0.1192, clamp_max: 0.971 }
     }
 }
 
@@ -42,7 +115,7 @@ fn sigmoid(l: f32) -> f32 {
     1.0 / (1.0 + (-l).exp())
 }
 
-/// OctoMap-style log-odds mapping.
+/// Log-odds occupancy mapping.
 ///
 /// ```
 /// use mrfmap::inference::{Engine, LogOddsEngine, LogOddsParams};
@@ -54,28 +127,22 @@ pub struct LogOddsEngine {
     grid: Grid<f32>,
     limits: RayLimits,
     params: LogOddsParams,
-    hit: f32,
-    miss: f32,
     min: f32,
     max: f32,
 }
 
 impl LogOddsEngine {
-    /// An empty map; fails on a bad resolution or probabilities outside (0, 1).
+    /// An empty map; fails on a bad resolution or parameters outside their ranges.
     pub fn new(resolution: f64, limits: RayLimits, params: LogOddsParams) -> Result<Self> {
         let p = params;
-        let ok = [p.p_hit, p.p_miss, p.clamp_min, p.clamp_max].iter().all(|v| *v > 0.0 && *v < 1.0);
-        if !ok || p.clamp_min >= p.clamp_max {
-            return Err(Error::Invalid(format!(
-                "log-odds parameters must be in (0, 1) with clamp_min < clamp_max: {p:?}"
-            )));
+        p.model.validate().map_err(Error::Invalid)?;
+        if !(p.clamp_min > 0.0 && p.clamp_min < p.clamp_max && p.clamp_max < 1.0) {
+            return Err(Error::Invalid(format!("need 0 < clamp_min < clamp_max < 1: {p:?}")));
         }
         Ok(LogOddsEngine {
             grid: Grid::new(resolution)?,
             limits,
             params,
-            hit: logit(p.p_hit) as f32,
-            miss: logit(p.p_miss) as f32,
             min: logit(p.clamp_min) as f32,
             max: logit(p.clamp_max) as f32,
         })
@@ -84,6 +151,71 @@ impl LogOddsEngine {
     /// The log-odds per voxel.
     pub fn log_odds(&self) -> &Grid<f32> {
         &self.grid
+    }
+
+    /// Adds `delta` to a voxel's log-odds (allocating it at 0 = prior 0.5), then clamps.
+    #[inline]
+    fn update(l: &mut f32, delta: f32, min: f32, max: f32) {
+        *l = (*l + delta).clamp(min, max);
+    }
+
+    fn integrate_hit_miss(&mut self, frame: &Frame, p_hit: f64, p_miss: f64) {
+        let (hit, miss) = (logit(p_hit) as f32, logit(p_miss) as f32);
+        let marks = ScanMarks::of_frame(frame, self.grid.resolution(), &self.limits);
+        for (key, m) in marks.bricks {
+            let brick = self.grid.brick_or_insert(key);
+            for slot in mask_slots(&m.hit) {
+                Self::update(brick.get_or_insert(slot, 0.0), hit, self.min, self.max);
+            }
+            let free_only: SlotMask = std::array::from_fn(|w| m.free[w] & !m.hit[w]);
+            for slot in mask_slots(&free_only) {
+                Self::update(brick.get_or_insert(slot, 0.0), miss, self.min, self.max);
+            }
+        }
+    }
+
+    fn integrate_ramp(&mut self, frame: &Frame) {
+        let model = self.params.model;
+        let SensorModel::Ramp { r_ramp, r_top, .. } = model else { unreachable!("called for the ramp model") };
+        let r = self.grid.resolution();
+        let limits = self.limits;
+        let rays = FrameRays::new(frame);
+        let width = frame.depth.width() as u64;
+        // Per voxel: (squared distance of the ray from the centre, pixel index, log-odds delta).
+        type Best = FxHashMap<VoxelKey, (f64, u64, f32)>;
+        let keep_closest = |best: &mut Best, key: VoxelKey, cand: (f64, u64, f32)| {
+            let e = best.entry(key).or_insert(cand);
+            if (cand.0, cand.1) < (e.0, e.1) {
+                *e = cand;
+            }
+        };
+        let best: Best = (0..rays.rows())
+            .into_par_iter()
+            .fold(Best::default, |mut best, v| {
+                for ray in rays.row(v) {
+                    let z = limits.surface_range(&ray).unwrap_or(f64::INFINITY);
+                    let Some(seg) = limits.segment(&ray, 0.5 * r_ramp + r_top) else { continue };
+                    let id = ray.v as u64 * width + ray.u as u64;
+                    for_each_crossing(ray.origin, ray.dir, seg.start, seg.end, r, |c| {
+                        let Some(p) = model.ramp_probability(0.5 * (c.s_in + c.s_out), z) else { return };
+                        let centre = c.key.center(r);
+                        let d = [0, 1, 2].map(|a| centre[a] - ray.origin[a]);
+                        let t = d[0] * ray.dir[0] + d[1] * ray.dir[1] + d[2] * ray.dir[2];
+                        let dist2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2] - t * t;
+                        keep_closest(&mut best, c.key, (dist2, id, logit(p) as f32));
+                    });
+                }
+                best
+            })
+            .reduce(Best::default, |mut a, b| {
+                for (k, cand) in b {
+                    keep_closest(&mut a, k, cand);
+                }
+                a
+            });
+        for (key, (_, _, delta)) in best {
+            Self::update(self.grid.get_or_insert(key, 0.0), delta, self.min, self.max);
+        }
     }
 }
 
@@ -97,18 +229,9 @@ impl Engine for LogOddsEngine {
     }
 
     fn integrate(&mut self, frame: &Frame) -> Result<()> {
-        let marks = ScanMarks::of_frame(frame, self.grid.resolution(), &self.limits);
-        for (key, m) in marks.bricks {
-            let brick = self.grid.brick_or_insert(key);
-            for slot in mask_slots(&m.hit) {
-                let l = brick.get_or_insert(slot, 0.0);
-                *l = (*l + self.hit).clamp(self.min, self.max);
-            }
-            let free_only: SlotMask = std::array::from_fn(|w| m.free[w] & !m.hit[w]);
-            for slot in mask_slots(&free_only) {
-                let l = brick.get_or_insert(slot, 0.0);
-                *l = (*l + self.miss).clamp(self.min, self.max);
-            }
+        match self.params.model {
+            SensorModel::HitMiss { p_hit, p_miss } => self.integrate_hit_miss(frame, p_hit, p_miss),
+            SensorModel::Ramp { .. } => self.integrate_ramp(frame),
         }
         Ok(())
     }
@@ -117,12 +240,16 @@ impl Engine for LogOddsEngine {
         let mut map = Map::new(self.name(), self.grid.resolution()).expect("valid resolution");
         map.voxels = self.grid.map(|l| MapVoxel { occupancy: sigmoid(*l), variance: 0.0 });
         let p = self.params;
-        for (k, v) in [("p_hit", p.p_hit), ("p_miss", p.p_miss), ("clamp_min", p.clamp_min), ("clamp_max", p.clamp_max)]
-        {
-            map.params.insert(k.into(), v.to_string());
+        let mut params = vec![("clamp_min", p.clamp_min), ("clamp_max", p.clamp_max)];
+        match p.model {
+            SensorModel::HitMiss { p_hit, p_miss } => params.extend([("p_hit", p_hit), ("p_miss", p_miss)]),
+            SensorModel::Ramp { q_low, q_high, r_ramp, r_top } => {
+                params.extend([("q_low", q_low), ("q_high", q_high), ("r_ramp", r_ramp), ("r_top", r_top)])
+            }
         }
-        if let Some(m) = self.limits.max_range {
-            map.params.insert("max_range".into(), m.to_string());
+        params.extend(self.limits.max_range.map(|m| ("max_range", m)));
+        for (k, v) in params {
+            map.params.insert(k.into(), v.to_string());
         }
         map
     }
@@ -281,6 +408,37 @@ mod tests {
     }
 
     #[test]
+    fn ramp_model_follows_the_profile_and_stops_behind_the_surface() {
+        let frame = wall_frame(1.0, 1, 1); // surface at x = 1.013
+        let params = LogOddsParams { model: SensorModel::CRM_PAPER, ..Default::default() };
+        let mut e = LogOddsEngine::new(0.02, RayLimits::default(), params).unwrap();
+        e.integrate(&frame).unwrap();
+        let g = e.log_odds();
+        // Voxel 20 spans x in [0.40, 0.42): well in front, q_low.
+        assert!((g.get(VoxelKey([20, 1, 0])).copied().unwrap() - logit(0.45) as f32).abs() < 1e-6);
+        // Voxel 50 spans [1.00, 1.02), crossed at ranges [0.987, 1.007]: midpoint 0.997 -> ramp.
+        let expected = 0.45 + 0.1 * (0.997 - 0.95) / 0.1;
+        assert!((g.get(VoxelKey([50, 1, 0])).copied().unwrap() - logit(expected) as f32).abs() < 1e-4);
+        // The plateau runs to range 1.15, which ends inside voxel 58 (x in [1.16, 1.18)):
+        // voxels 57 and 58 get q_high, nothing beyond is touched.
+        for i in [57, 58] {
+            assert!((g.get(VoxelKey([i, 1, 0])).copied().unwrap() - logit(0.55) as f32).abs() < 1e-6, "voxel {i}");
+        }
+        assert_eq!(g.get(VoxelKey([59, 1, 0])), None);
+        assert!(
+            LogOddsEngine::new(
+                0.02,
+                RayLimits::default(),
+                LogOddsParams {
+                    model: SensorModel::Ramp { q_low: 0.4, q_high: 1.2, r_ramp: 0.1, r_top: 0.1 },
+                    ..Default::default()
+                }
+            )
+            .is_err()
+        );
+    }
+
+    #[test]
     fn identical_for_any_thread_count() {
         let frame = {
             let mut f = wall_frame(3.0, 64, 48);
@@ -291,20 +449,23 @@ mod tests {
             }
             f
         };
-        let run = |threads| {
-            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
-            let mut e = LogOddsEngine::new(0.02, RayLimits::default(), LogOddsParams::default()).unwrap();
-            pool.install(|| {
-                e.integrate(&frame).unwrap();
-                e.integrate(&frame).unwrap();
-            });
-            let mut v: Vec<(VoxelKey, u32)> = e.log_odds().iter().map(|(k, l)| (k, l.to_bits())).collect();
-            v.sort();
-            v
-        };
-        let one = run(1);
-        assert!(one.len() > 1000);
-        assert_eq!(one, run(2));
-        assert_eq!(one, run(3));
+        for model in [SensorModel::OCTOMAP, SensorModel::CRM_PAPER] {
+            let run = |threads| {
+                let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+                let params = LogOddsParams { model, ..Default::default() };
+                let mut e = LogOddsEngine::new(0.02, RayLimits::default(), params).unwrap();
+                pool.install(|| {
+                    e.integrate(&frame).unwrap();
+                    e.integrate(&frame).unwrap();
+                });
+                let mut v: Vec<(VoxelKey, u32)> = e.log_odds().iter().map(|(k, l)| (k, l.to_bits())).collect();
+                v.sort();
+                v
+            };
+            let one = run(1);
+            assert!(one.len() > 1000);
+            assert_eq!(one, run(2), "{model:?}");
+            assert_eq!(one, run(3), "{model:?}");
+        }
     }
 }

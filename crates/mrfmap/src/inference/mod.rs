@@ -5,14 +5,15 @@
 //! [`crate::rays`] and keep their state in a [`crate::map::Grid`]. Available:
 //!
 //! - [`LogOddsEngine`]: OctoMap's occupancy grid update (ALGORITHMS.md 5.1), the baseline
-//!   and the fast everyday mode.
+//!   and the fast everyday mode; also the CRM paper's ramp inverse sensor model
+//!   ([`SensorModel`]).
 
 mod logodds;
 
 use std::fmt;
 use std::str::FromStr;
 
-pub use logodds::{LogOddsEngine, LogOddsParams};
+pub use logodds::{LogOddsEngine, LogOddsParams, SensorModel};
 
 use crate::error::{Error, Result};
 use crate::frames::Frame;

@@ -166,6 +166,12 @@ impl RayLimits {
         Ok(())
     }
 
+    /// Range of the ray's measured surface, `None` when it lies beyond the max range (the
+    /// reading then only says "free up to max range").
+    pub fn surface_range(&self, ray: &PixelRay) -> Option<f64> {
+        (self.max_range.is_none_or(|m| ray.range <= m)).then_some(ray.range)
+    }
+
     /// The segment of `ray` from the camera to its surface (or `extra` metres past it, for
     /// engines that model the space behind a surface) that the limits allow.
     ///
@@ -177,15 +183,12 @@ impl RayLimits {
     /// assert_eq!((seg.start, seg.end, seg.hits_surface), (0.0, 3.0, false));
     /// ```
     pub fn segment(&self, ray: &PixelRay, extra: f64) -> Option<Segment> {
-        let mut seg = Segment { start: 0.0, end: ray.range + extra, hits_surface: true };
-        if let Some(m) = self.max_range {
-            if ray.range > m {
-                seg.end = m;
-                seg.hits_surface = false;
-            } else {
-                seg.end = seg.end.min(m.max(ray.range));
+        let mut seg = match (self.surface_range(ray), self.max_range) {
+            (Some(z), m) => {
+                Segment { start: 0.0, end: m.map_or(z + extra, |m| (z + extra).min(m.max(z))), hits_surface: true }
             }
-        }
+            (None, m) => Segment { start: 0.0, end: m.expect("no surface only with a max range"), hits_surface: false },
+        };
         if let Some(b) = &self.bounds {
             let (a, e) = b.clip(ray.origin, ray.dir, seg.start, seg.end)?;
             if e < ray.range {

@@ -363,6 +363,53 @@ mod tests {
     }
 
     #[test]
+    fn per_patch_noise_lands_on_its_patch() {
+        // A wall 2 m ahead fills a 40x40 image of 2x2 patches, each with its own bias.
+        let text = r#"
+[camera]
+fx = 20.0
+fy = 20.0
+cx = 19.5
+cy = 19.5
+width = 40
+height = 40
+depth_scale = 5000.0
+[noise]
+bias = [0.0]
+std = [0.001]
+[noise.patches]
+size = 20
+rows = 2
+cols = 2
+bias = [[0.0], [0.01], [0.02], [0.03]]
+std = [[0.001], [0.001], [0.001], [0.004]]
+[[box]]
+min = [2.0, -10.0, -10.0]
+max = [3.0, 10.0, 10.0]
+[[view]]
+eye = [0.0, 0.0, 0.0]
+target = [1.0, 0.0, 0.0]
+"#;
+        let scene = Scene::from_toml(text, Path::new("patches.toml")).unwrap();
+        let truth = scene.render(&scene.views[0]);
+        let noisy = scene.add_noise(&truth, 5, 0);
+        assert_eq!(noisy, scene.add_noise(&truth, 5, 0), "seeded");
+        for (patch, (bias, std)) in [(0.0, 0.001), (0.01, 0.001), (0.02, 0.001), (0.03, 0.004)].into_iter().enumerate()
+        {
+            let (u0, v0) = ((patch % 2) as u32 * 20, (patch / 2) as u32 * 20);
+            let res: Vec<f64> = (v0..v0 + 20)
+                .flat_map(|v| (u0..u0 + 20).map(move |u| (u, v)))
+                .map(|(u, v)| (noisy.get(u, v).unwrap() - truth.get(u, v).unwrap()) as f64)
+                .collect();
+            let n = res.len() as f64;
+            let mean = res.iter().sum::<f64>() / n;
+            let sd = (res.iter().map(|r| (r - mean).powi(2)).sum::<f64>() / n).sqrt();
+            assert!((mean - bias).abs() < 4.0 * std / n.sqrt() + 1e-6, "patch {patch}: mean {mean}, bias {bias}");
+            assert!((sd / std - 1.0).abs() < 0.2, "patch {patch}: sd {sd}, std {std}");
+        }
+    }
+
+    #[test]
     fn orbit_and_errors() {
         let base =
             "[camera]\nfx = 50.0\nfy = 50.0\ncx = 15.5\ncy = 11.5\nwidth = 32\nheight = 24\ndepth_scale = 5000.0\n";

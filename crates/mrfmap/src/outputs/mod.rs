@@ -1,8 +1,18 @@
-//! Outputs: what leaves the library — exported files for viewers and other tools.
+//! Outputs: what leaves the library — exported files, evaluation and pictures.
 //!
-//! [`write_ply`] writes voxel centres with occupancy (and variance); [`read_ply`] reads
-//! such files back (ASCII or binary) for checks and round trips.
+//! - [`write_ply`] / [`read_ply`]: voxel centres with occupancy (and variance) as PLY;
+//! - [`score_view`] / [`ray_profile`]: the MRFMap accuracy metric on a held-out view;
+//! - [`truth_metrics`]: MAE, ROC AUC, inconsistency and sigma-error correlation against an
+//!   analytic scene;
+//! - `pictures`: accuracy images, per-ray plots, map slices.
 
+mod accuracy;
+pub mod pictures;
 mod ply;
+mod truth;
 
+pub use accuracy::{
+    AccuracyParams, PixelClass, ProfileStep, RayVerdict, VISIBILITY_FLOOR, ViewScore, ray_profile, score_view,
+};
 pub use ply::{PlyOptions, PlyVertices, read_ply, write_ply};
+pub use truth::{TruthMetrics, VoxelTruth, mean_sigma, pearson, roc_auc, true_occupancy, truth_metrics, voxel_truths};

@@ -1,0 +1,403 @@
+//! The MRFMap accuracy metric for probabilistic maps (ALGORITHMS.md 6.1, MRFMap sec. III-D).
+//!
+//! A held-out depth pixel is explained by the map if the most likely generating surface
+//! along its ray lies where the held-out depth says. Each voxel with occupancy `p` is a slab
+//! of constant occlusion density `alpha = -ln(1 - p) / r` per metre (a full crossing occludes
+//! with probability `p`; partial crossings scale with length). Visibility is
+//! `vis(s) = exp(-integral alpha)`, the generating-surface density `omega(s) = alpha(s) vis(s)`.
+//! Inside a voxel omega only falls, so its maximum is at the entry of some voxel.
+//!
+//! Classification of a pixel with held-out range `r_D`:
+//! - no allocated voxel on the ray: *invalid*;
+//! - visibility never below 0.9 (the map does not explain a surface): *inaccurate* if the
+//!   mapped part of the ray reached `r_D` (the map claims free space where the surface is),
+//!   else *invalid* (the map ended first). The MRFMap paper instead counts the latter as
+//!   accurate when the measurement lies beyond the map boundary; ALGORITHMS.md rules here;
+//! - otherwise *accurate* iff `|argmax omega - r_D| <= k sigma` (defaults `k = 1`,
+//!   `sigma = 0.05 m`: the reference implementation's setting; the paper's text says 1.5 sigma).
+//!
+//! Unallocated voxels read as empty; for log-odds maps voxels at or below the occupancy
+//! threshold read as empty too, as the paper did for OctoMap.
+
+use rayon::prelude::*;
+
+use crate::frames::{Camera, DepthImage, Pose};
+use crate::map::{Brick, BrickKey, Map, MapVoxel, OCCUPIED_THRESHOLD};
+use crate::rays::{Aabb, for_each_crossing};
+
+/// Occupancies are clamped below 1 by this much so that `alpha` stays finite.
+const P_MAX: f64 = 1.0 - 1e-6;
+
+/// Visibility above which a ray counts as not explained by any surface.
+pub const VISIBILITY_FLOOR: f64 = 0.9;
+
+/// Settings of the metric.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AccuracyParams {
+    /// Tolerance unit in metres (default 0.05).
+    pub sigma: f64,
+    /// Tolerance in units of `sigma` (default 1; the paper's text says 1.5).
+    pub k: f64,
+    /// Occupancies at or below this read as empty (`Some(0.5)` for log-odds maps).
+    pub empty_at_or_below: Option<f32>,
+}
+
+impl AccuracyParams {
+    /// Defaults for `map`: sigma 0.05 m, k 1, thresholded reading for log-odds maps.
+    pub fn for_map(map: &Map) -> Self {
+        AccuracyParams {
+            sigma: 0.05,
+            k: 1.0,
+            empty_at_or_below: (map.engine == "logodds").then_some(OCCUPIED_THRESHOLD),
+        }
+    }
+
+    fn occupancy(&self, v: &MapVoxel) -> f64 {
+        match self.empty_at_or_below {
+            Some(t) if v.occupancy <= t => 0.0,
+            _ => (v.occupancy as f64).clamp(0.0, P_MAX),
+        }
+    }
+}
+
+/// What the metric says about one pixel.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PixelClass {
+    /// The held-out image has no depth here.
+    NoDepth,
+    /// The map's most likely surface is within `k sigma` of the held-out depth.
+    Accurate,
+    /// The map puts the surface elsewhere, or claims free space where it is.
+    Inaccurate,
+    /// The map says nothing about this ray (not counted).
+    Invalid,
+}
+
+/// One voxel along an evaluated ray, for plots.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ProfileStep {
+    /// Entry range (m).
+    pub s_in: f64,
+    /// Exit range (m).
+    pub s_out: f64,
+    /// Occupancy as the metric reads it (0 for unallocated voxels).
+    pub occupancy: f64,
+    /// Occlusion density (1/m).
+    pub alpha: f64,
+    /// Visibility at entry.
+    pub visibility: f64,
+}
+
+/// The metric's view of one ray.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RayVerdict {
+    /// The classification.
+    pub class: PixelClass,
+    /// Range of the most likely generating surface, if the visibility fell below 0.9.
+    pub peak: Option<f64>,
+    /// Held-out range along the ray.
+    pub range: f64,
+}
+
+/// A ray in world coordinates with the map's bounds and lookups, walked once per pixel.
+struct RayWalk<'a> {
+    map: &'a Map,
+    bounds: Aabb,
+    params: AccuracyParams,
+}
+
+impl RayWalk<'_> {
+    /// Walks `origin + s dir` through the map and classifies it against range `r_d`;
+    /// `profile` receives every voxel until the walk stops.
+    fn run(&self, origin: [f64; 3], dir: [f64; 3], r_d: f64, mut profile: impl FnMut(ProfileStep)) -> RayVerdict {
+        let invalid = RayVerdict { class: PixelClass::Invalid, peak: None, range: r_d };
+        let Some((s0, s1)) = self.bounds.clip(origin, dir, 0.0, f64::INFINITY) else { return invalid };
+        let r = self.map.resolution();
+        let alpha_max = -(1.0 - P_MAX).ln() / r;
+        let mut vis = 1.0f64;
+        let mut best = (0.0f64, f64::NAN); // (omega, range)
+        let mut last_mapped: Option<f64> = None;
+        let mut cached: Option<(BrickKey, Option<&Brick<MapVoxel>>)> = None;
+        let mut done = false;
+        for_each_crossing(origin, dir, s0, s1, r, |c| {
+            if done {
+                return;
+            }
+            let bk = c.key.brick();
+            let brick = match cached {
+                Some((k, b)) if k == bk => b,
+                _ => {
+                    let b = self.map.voxels.brick(bk);
+                    cached = Some((bk, b));
+                    b
+                }
+            };
+            let voxel = brick.and_then(|b| b.get(c.key.slot()));
+            let p = voxel.map_or(0.0, |v| self.params.occupancy(v));
+            if voxel.is_some() {
+                last_mapped = Some(c.s_out);
+            }
+            let alpha = -(1.0 - p).ln() / r;
+            profile(ProfileStep { s_in: c.s_in, s_out: c.s_out, occupancy: p, alpha, visibility: vis });
+            if alpha * vis > best.0 {
+                best = (alpha * vis, c.s_in);
+            }
+            vis *= (-alpha * c.length()).exp();
+            // Nothing further can beat the best peak once even a certain voxel could not.
+            done = alpha_max * vis < best.0;
+        });
+        let Some(last_mapped) = last_mapped else { return invalid };
+        let min_vis = vis; // visibility only falls along the ray
+        if min_vis >= VISIBILITY_FLOOR {
+            let class = if last_mapped >= r_d { PixelClass::Inaccurate } else { PixelClass::Invalid };
+            return RayVerdict { class, peak: None, range: r_d };
+        }
+        let accurate = (best.1 - r_d).abs() <= self.params.k * self.params.sigma;
+        RayVerdict {
+            class: if accurate { PixelClass::Accurate } else { PixelClass::Inaccurate },
+            peak: Some(best.1),
+            range: r_d,
+        }
+    }
+}
+
+/// Per-pixel classes and counts for one held-out view.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ViewScore {
+    /// Image width.
+    pub width: u32,
+    /// Image height.
+    pub height: u32,
+    /// Class per pixel, row-major.
+    pub classes: Vec<PixelClass>,
+    /// Accurate pixels.
+    pub accurate: usize,
+    /// Inaccurate pixels.
+    pub inaccurate: usize,
+    /// Invalid pixels (not counted).
+    pub invalid: usize,
+}
+
+impl ViewScore {
+    /// Counted pixels: accurate + inaccurate.
+    pub fn valid(&self) -> usize {
+        self.accurate + self.inaccurate
+    }
+
+    /// accurate / valid, `None` when no pixel is valid.
+    pub fn accuracy(&self) -> Option<f64> {
+        (self.valid() > 0).then(|| self.accurate as f64 / self.valid() as f64)
+    }
+}
+
+/// Ray of pixel `(u, v)` in the world: origin, unit direction, and range per metre of z-depth.
+fn pixel_ray(camera: &Camera, pose: &Pose, u: u32, v: u32) -> ([f64; 3], [f64; 3], f64) {
+    let ray = camera.pixel_ray(u as f64, v as f64);
+    let norm = ray.norm();
+    let d = pose.rotation * (ray / norm);
+    let o = pose.translation.vector;
+    ([o.x, o.y, o.z], [d.x, d.y, d.z], norm)
+}
+
+fn walker<'a>(map: &'a Map, params: AccuracyParams) -> Option<RayWalk<'a>> {
+    let (lo, hi) = map.bounds()?;
+    Some(RayWalk { map, bounds: Aabb { min: lo, max: hi }, params })
+}
+
+/// Scores `map` against the held-out z-depth image `depth` seen from `pose` (parallel by row).
+///
+/// ```
+/// use mrfmap::frames::{Camera, DepthImage, look_at};
+/// use mrfmap::map::{Map, MapVoxel, VoxelKey};
+/// use mrfmap::outputs::{AccuracyParams, score_view};
+/// // A solid wall of voxels at x in [2.0, 2.1) seen head-on from the origin.
+/// let mut map = Map::new("mrf", 0.1).unwrap();
+/// for y in -5..5 { for z in -5..5 {
+///     map.voxels.insert(VoxelKey([20, y, z]), MapVoxel { occupancy: 0.95, variance: 0.0 });
+/// } }
+/// let cam = Camera::new(10.0, 10.0, 1.5, 1.5, 4, 4, 1000.0).unwrap();
+/// let pose = look_at([0.0, 0.01, 0.01].into(), [1.0, 0.01, 0.01].into()).unwrap();
+/// let mut depth = DepthImage::new(4, 4);
+/// depth.set(1, 1, 2.02);
+/// let score = score_view(&map, &cam, &pose, &depth, &AccuracyParams::for_map(&map));
+/// assert_eq!((score.accurate, score.valid()), (1, 1));
+/// ```
+pub fn score_view(map: &Map, camera: &Camera, pose: &Pose, depth: &DepthImage, params: &AccuracyParams) -> ViewScore {
+    let (w, h) = (depth.width(), depth.height());
+    let walk = walker(map, *params);
+    let classes: Vec<PixelClass> = (0..h)
+        .into_par_iter()
+        .flat_map_iter(|v| {
+            let walk = walk.as_ref();
+            (0..w).map(move |u| match (depth.get(u, v), walk) {
+                (None, _) => PixelClass::NoDepth,
+                (Some(_), None) => PixelClass::Invalid,
+                (Some(z), Some(walk)) => {
+                    let (o, d, norm) = pixel_ray(camera, pose, u, v);
+                    walk.run(o, d, z as f64 * norm, |_| {}).class
+                }
+            })
+        })
+        .collect();
+    let count = |c| classes.iter().filter(|x| **x == c).count();
+    ViewScore {
+        width: w,
+        height: h,
+        accurate: count(PixelClass::Accurate),
+        inaccurate: count(PixelClass::Inaccurate),
+        invalid: count(PixelClass::Invalid),
+        classes,
+    }
+}
+
+/// The full profile of one pixel's ray (for the per-ray plot) and its verdict; `None` when
+/// the held-out image has no depth at `(u, v)` or the pixel is outside the image.
+pub fn ray_profile(
+    map: &Map,
+    camera: &Camera,
+    pose: &Pose,
+    depth: &DepthImage,
+    (u, v): (u32, u32),
+    params: &AccuracyParams,
+) -> Option<(Vec<ProfileStep>, RayVerdict)> {
+    if u >= depth.width() || v >= depth.height() {
+        return None;
+    }
+    let z = depth.get(u, v)?;
+    let (o, d, norm) = pixel_ray(camera, pose, u, v);
+    let mut steps = Vec::new();
+    let verdict = match walker(map, *params) {
+        Some(walk) => walk.run(o, d, z as f64 * norm, |s| steps.push(s)),
+        None => RayVerdict { class: PixelClass::Invalid, peak: None, range: z as f64 * norm },
+    };
+    Some((steps, verdict))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::map::VoxelKey;
+    use crate::random::Rng;
+
+    fn walk(map: &Map) -> RayWalk<'_> {
+        walker(map, AccuracyParams { sigma: 0.05, k: 1.0, empty_at_or_below: None }).unwrap()
+    }
+
+    /// A map with a slab of voxels at x index `i` (all y, z in -3..3), occupancy `p`.
+    fn slab(map: &mut Map, i: i32, p: f32) {
+        for y in -3..3 {
+            for z in -3..3 {
+                map.voxels.insert(VoxelKey([i, y, z]), MapVoxel { occupancy: p, variance: 0.0 });
+            }
+        }
+    }
+
+    const O: [f64; 3] = [0.0, 0.05, 0.05];
+    const X: [f64; 3] = [1.0, 0.0, 0.0];
+
+    #[test]
+    fn wall_at_the_true_range_is_accurate() {
+        let mut map = Map::new("mrf", 0.1).unwrap();
+        slab(&mut map, 0, 0.01);
+        slab(&mut map, 20, 0.9);
+        let v = walk(&map).run(O, X, 2.03, |_| {});
+        assert_eq!(v.class, PixelClass::Accurate);
+        assert!((v.peak.unwrap() - 2.0).abs() < 1e-12);
+        // 0.2 m further away than the wall: the map explains the ray wrongly.
+        assert_eq!(walk(&map).run(O, X, 2.25, |_| {}).class, PixelClass::Inaccurate);
+    }
+
+    #[test]
+    fn wall_in_front_of_the_true_surface_is_inaccurate() {
+        let mut map = Map::new("mrf", 0.1).unwrap();
+        slab(&mut map, 10, 0.8);
+        slab(&mut map, 20, 0.99);
+        let v = walk(&map).run(O, X, 2.0, |_| {});
+        assert_eq!(v.class, PixelClass::Inaccurate);
+        assert!((v.peak.unwrap() - 1.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn empty_and_free_maps() {
+        let map = Map::new("mrf", 0.1).unwrap();
+        assert!(walker(&map, AccuracyParams::for_map(&map)).is_none(), "empty map has no bounds");
+        let cam = Camera::new(10.0, 10.0, 1.5, 1.5, 4, 4, 1000.0).unwrap();
+        let mut depth = DepthImage::new(4, 4);
+        depth.set(0, 0, 1.0);
+        let pose = crate::frames::look_at([0.0; 3].into(), [1.0, 0.0, 0.0].into()).unwrap();
+        let s = score_view(&map, &cam, &pose, &depth, &AccuracyParams::for_map(&map));
+        assert_eq!((s.invalid, s.valid(), s.accuracy()), (1, 0, None));
+        // Known-free space reaching past the surface: inaccurate; ending before it: invalid.
+        let mut free = Map::new("mrf", 0.1).unwrap();
+        for i in 0..15 {
+            slab(&mut free, i, 0.001);
+        }
+        assert_eq!(walk(&free).run(O, X, 1.0, |_| {}).class, PixelClass::Inaccurate);
+        assert_eq!(walk(&free).run(O, X, 2.0, |_| {}).class, PixelClass::Invalid);
+    }
+
+    #[test]
+    fn log_odds_maps_read_free_voxels_as_empty() {
+        let mut map = Map::new("logodds", 0.1).unwrap();
+        slab(&mut map, 5, 0.45);
+        slab(&mut map, 20, 0.8);
+        let params = AccuracyParams::for_map(&map);
+        assert_eq!(params.empty_at_or_below, Some(0.5));
+        let v = walker(&map, params).unwrap().run(O, X, 2.02, |_| {});
+        assert_eq!(v.class, PixelClass::Accurate);
+    }
+
+    #[test]
+    fn partial_crossings_occlude_in_proportion_to_length() {
+        // A ray clipping a voxel over a quarter of its width loses (1 - p)^(1/4) visibility.
+        let mut map = Map::new("mrf", 0.1).unwrap();
+        map.voxels.insert(VoxelKey([5, 0, 0]), MapVoxel { occupancy: 0.9, variance: 0.0 });
+        map.voxels.insert(VoxelKey([9, 5, 0]), MapVoxel { occupancy: 0.0, variance: 0.0 }); // widens the bounds
+        // Enters voxel (5, 0, 0) through x = 0.5 at y = 0.075 and leaves through y = 0.1.
+        let dir = [0.6, 0.8, 0.0];
+        let origin = [0.5 - 0.06, 0.075 - 0.08, 0.05];
+        let mut steps = Vec::new();
+        walk(&map).run(origin, dir, 1.0, |s| steps.push(s));
+        let s = steps.iter().find(|s| s.occupancy > 0.0).unwrap();
+        let fraction = (s.s_out - s.s_in) / 0.1;
+        assert!((fraction - 0.3125).abs() < 1e-9, "fraction {fraction}");
+        let vis_after = steps.iter().find(|x| x.s_in >= s.s_out).unwrap().visibility;
+        assert!((vis_after - 0.1f64.powf(fraction)).abs() < 1e-6, "{vis_after}"); // occupancy is an f32
+        assert!(fraction > 0.0 && fraction < 1.0, "fraction {fraction}");
+    }
+
+    #[test]
+    fn visibility_matches_fine_numerical_integration() {
+        let mut rng = Rng::new(99);
+        let r = 0.1;
+        let mut map = Map::new("mrf", r).unwrap();
+        for _ in 0..400 {
+            let k = VoxelKey([0; 3].map(|_| (rng.next_u64() % 8) as i32));
+            map.voxels.insert(k, MapVoxel { occupancy: rng.uniform() as f32 * 0.9, variance: 0.0 });
+        }
+        let w = walk(&map);
+        for _ in 0..50 {
+            let origin = [0; 3].map(|_| rng.range(0.0, 0.8));
+            let mut dir = [0; 3].map(|_| rng.range(-1.0, 1.0));
+            let n = dir.iter().map(|d| d * d).sum::<f64>().sqrt();
+            dir = dir.map(|d| d / n);
+            let mut steps = Vec::new();
+            w.run(origin, dir, 100.0, |s| steps.push(s));
+            // Integrate alpha by midpoint sampling from the walk's start to each step's entry.
+            let h = 1e-5;
+            let mut integral = 0.0f64;
+            let mut s = steps.first().map_or(0.0, |x| x.s_in);
+            for st in &steps {
+                while s + h <= st.s_in {
+                    let m = s + 0.5 * h;
+                    let p = [0, 1, 2].map(|a| origin[a] + m * dir[a]);
+                    let occ = map.voxels.get(VoxelKey::from_point(p, r)).map_or(0.0, |v| v.occupancy as f64);
+                    integral += -(1.0 - occ.min(P_MAX)).ln() / r * h;
+                    s += h;
+                }
+                let numeric = (-integral).exp();
+                assert!((st.visibility - numeric).abs() < 2e-3, "vis {} vs numeric {numeric}", st.visibility);
+            }
+        }
+    }
+}

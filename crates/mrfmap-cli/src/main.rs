@@ -33,6 +33,12 @@ enum Command {
     Simulate(commands::simulate::Args),
     /// Simulate the bundled room scene, build maps with every engine, export PLY.
     Demo(commands::demo::Args),
+    /// Score a map: accuracy on held-out views of a dataset, or metrics against a scene.
+    Eval(commands::eval::Args),
+    /// Leave-one-out accuracy: build without each view, score on it.
+    Loo(commands::loo::Args),
+    /// Engines and resolutions side by side: a Markdown report with tables and pictures.
+    Compare(commands::compare::Args),
     /// Time map building per frame at several resolutions (release builds only make sense).
     Bench(commands::bench::Args),
 }
@@ -55,6 +61,9 @@ fn main() {
             Command::Info(a) => commands::info::run(a),
             Command::Simulate(a) => commands::simulate::run(a),
             Command::Demo(a) => commands::demo::run(a),
+            Command::Eval(a) => commands::eval::run(a),
+            Command::Loo(a) => commands::loo::run(a),
+            Command::Compare(a) => commands::compare::run(a),
             Command::Bench(a) => commands::bench::run(a),
         }
     })();

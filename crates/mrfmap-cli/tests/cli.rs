@@ -148,6 +148,51 @@ fn simulate_build_info_export() {
 }
 
 #[test]
+fn eval_loo_and_compare() {
+    let dir = workdir("eval");
+    let data = dataset(&dir);
+    let map = dir.join("m.mrfmap");
+    let o = run(&["build", s(&data), "-o", s(&map), "--resolution", "0.05", "--exclude", "2", "-q"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+
+    // Held-out view 2 of a noise-light scene: most pixels are explained by the map.
+    let images = dir.join("img");
+    let o = run(&["eval", s(&map), s(&data), "--views", "2", "--json", "--images", s(&images), "--pixel", "40,30"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let json = stdout(&o);
+    assert!(json.trim_start().starts_with('{') && json.contains("\"views\": [{\"view\": 2"), "{json}");
+    let acc: f64 = json.split("\"accuracy\": ").nth(1).unwrap().split(',').next().unwrap().parse().unwrap();
+    assert!(acc > 0.5 && acc <= 1.0, "accuracy {acc}");
+    assert!(images.join("view2_accuracy.png").is_file());
+    let svg = std::fs::read_to_string(images.join("view2_ray_40_30.svg")).unwrap();
+    assert!(svg.starts_with("<svg") && svg.contains("polyline"));
+
+    // Against the scene: metrics and slices.
+    let slices = dir.join("slices");
+    let o = run(&["eval", s(&map), "--scene", s(&dir.join("scene.toml")), "--slices", s(&slices), "--slice-z", "0.3"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stdout(&o).contains("ROC AUC"), "{}", stdout(&o));
+    assert!(slices.join("slice_z0.3_ic.png").is_file());
+
+    let o = run(&["loo", s(&data), "--resolution", "0.1", "--views", "0,3", "-q"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stdout(&o).contains("over 2 views"), "{}", stdout(&o));
+
+    let report = dir.join("report");
+    let o = run(&["compare", s(&data), "--resolutions", "0.1", "--views", "1", "-o", s(&report), "-q"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let md = std::fs::read_to_string(report.join("report.md")).unwrap();
+    assert!(md.contains("| logodds |") && md.contains("logodds_0.1_view1_accuracy.png"), "{md}");
+    assert!(report.join("logodds_0.1_view1_accuracy.png").is_file());
+
+    // Errors: nothing to evaluate against, view out of range.
+    let o = run(&["eval", s(&map)]);
+    assert!(!o.status.success() && stderr(&o).contains("nothing to evaluate"), "{}", stderr(&o));
+    let o = run(&["eval", s(&map), s(&data), "--views", "7"]);
+    assert!(!o.status.success() && stderr(&o).contains("frame index 7"), "{}", stderr(&o));
+}
+
+#[test]
 fn bad_dataset_files_give_clear_errors() {
     let dir = workdir("bad");
     let data = dataset(&dir);

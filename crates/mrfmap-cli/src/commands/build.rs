@@ -1,13 +1,46 @@
-//! `mrfmap build`: dataset in, map file out.
+//! `mrfmap build`: dataset in, map file out. Also the building blocks that `demo`, `loo`
+//! and `compare` share: map options, frame selection, and the integration loop.
 
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
+use mrfmap::frames::Frame;
 use mrfmap::inference::{EngineConfig, EngineKind, new_engine};
 use mrfmap::map::Map;
 use mrfmap::rays::{Aabb, RayLimits};
 use mrfmap::source::Dataset;
+
+/// Options that shape how any map is built from a dataset.
+#[derive(clap::Args, Clone)]
+pub struct MapOptions {
+    /// Cut readings beyond this range (metres); they then mark free space only.
+    #[arg(long, value_parser = super::positive, allow_hyphen_values = true)]
+    pub max_range: Option<f64>,
+    /// Map only this box: XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX (metres).
+    #[arg(long, allow_hyphen_values = true)]
+    pub bounds: Option<String>,
+    /// Noise model file (default: the dataset's noise.toml when present).
+    #[arg(long)]
+    pub noise: Option<PathBuf>,
+}
+
+impl MapOptions {
+    /// Opens `dataset` with the noise override applied.
+    pub fn open(&self, dataset: &std::path::Path) -> Result<Dataset> {
+        let mut ds = Dataset::open(dataset)?;
+        if let Some(n) = &self.noise {
+            ds.set_noise_file(n)?;
+        }
+        Ok(ds)
+    }
+
+    /// The engine configuration for `kind` at `resolution`.
+    pub fn config(&self, kind: EngineKind, resolution: f64) -> Result<EngineConfig> {
+        let bounds = self.bounds.as_deref().map(Aabb::parse).transpose()?;
+        Ok(EngineConfig { kind, resolution, limits: RayLimits { max_range: self.max_range, bounds } })
+    }
+}
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -28,15 +61,8 @@ pub struct Args {
     /// Only these frame indices (default: all).
     #[arg(long, value_delimiter = ',')]
     frames: Vec<usize>,
-    /// Cut readings beyond this range (metres); they then mark free space only.
-    #[arg(long, value_parser = super::positive, allow_hyphen_values = true)]
-    max_range: Option<f64>,
-    /// Map only this box: XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX (metres).
-    #[arg(long, allow_hyphen_values = true)]
-    bounds: Option<String>,
-    /// Noise model file (default: the dataset's noise.toml when present).
-    #[arg(long)]
-    noise: Option<PathBuf>,
+    #[command(flatten)]
+    options: MapOptions,
 }
 
 /// What a build did.
@@ -46,13 +72,18 @@ pub struct BuildReport {
     pub integrate_time: Duration,
 }
 
+/// Checks that every index names a frame of a dataset with `len` frames.
+pub fn check_indices(len: usize, indices: &[usize]) -> Result<()> {
+    match indices.iter().find(|&&i| i >= len) {
+        Some(i) => bail!("frame index {i} is out of range: the dataset has {len} frames (0..{})", len - 1),
+        None => Ok(()),
+    }
+}
+
 /// The frames to use: `frames` (or all) minus `exclude`; indices must exist.
 pub fn select_frames(len: usize, frames: &[usize], exclude: &[usize]) -> Result<Vec<usize>> {
-    for &i in frames.iter().chain(exclude) {
-        if i >= len {
-            bail!("frame index {i} is out of range: the dataset has {len} frames (0..{})", len - 1);
-        }
-    }
+    check_indices(len, frames)?;
+    check_indices(len, exclude)?;
     let chosen: Vec<usize> = if frames.is_empty() { (0..len).collect() } else { frames.to_vec() };
     let chosen: Vec<usize> = chosen.into_iter().filter(|i| !exclude.contains(i)).collect();
     if chosen.is_empty() {
@@ -61,13 +92,18 @@ pub fn select_frames(len: usize, frames: &[usize], exclude: &[usize]) -> Result<
     Ok(chosen)
 }
 
-/// Integrates `indices` of `dataset` with the engine `config` describes, with a progress bar.
-pub fn build_map(dataset: &Dataset, indices: &[usize], config: &EngineConfig) -> Result<BuildReport> {
+/// Integrates the frames `indices` (fetched through `frame`) with the engine `config`
+/// describes, with a progress bar.
+pub fn build_map(
+    indices: &[usize],
+    config: &EngineConfig,
+    mut frame: impl FnMut(usize) -> mrfmap::Result<Frame>,
+) -> Result<BuildReport> {
     let mut engine = new_engine(config)?;
     let bar = crate::progress::bar(indices.len() as u64, config.kind.name());
     let mut integrate_time = Duration::ZERO;
     for &i in indices {
-        let frame = dataset.frame(i)?;
+        let frame = frame(i)?;
         let t = Instant::now();
         engine.integrate(&frame).with_context(|| format!("integrating frame {i}"))?;
         integrate_time += t.elapsed();
@@ -79,13 +115,9 @@ pub fn build_map(dataset: &Dataset, indices: &[usize], config: &EngineConfig) ->
 
 pub fn run(a: Args) -> Result<()> {
     let kind: EngineKind = a.engine.parse()?;
-    let bounds = a.bounds.as_deref().map(Aabb::parse).transpose()?;
-    let mut dataset = Dataset::open(&a.dataset)?;
-    if let Some(n) = &a.noise {
-        dataset.set_noise_file(n)?;
-    }
+    let config = a.options.config(kind, a.resolution)?;
+    let dataset = a.options.open(&a.dataset)?;
     let indices = select_frames(dataset.len(), &a.frames, &a.exclude)?;
-    let config = EngineConfig { kind, resolution: a.resolution, limits: RayLimits { max_range: a.max_range, bounds } };
     tracing::info!(
         "{}: {} of {} frames, engine {kind}, resolution {} m",
         a.dataset.display(),
@@ -93,7 +125,7 @@ pub fn run(a: Args) -> Result<()> {
         dataset.len(),
         a.resolution
     );
-    let report = build_map(&dataset, &indices, &config)?;
+    let report = build_map(&indices, &config, |i| dataset.frame(i))?;
     report.map.save(&a.output)?;
     println!(
         "{}: {} frames, {} voxels ({} occupied), {:.1} ms/frame",

@@ -46,7 +46,7 @@ pub fn run(a: Args) -> Result<()> {
     for &kind in EngineKind::ALL {
         let config = EngineConfig { kind, resolution: RESOLUTION, limits: Default::default() };
         let t = Instant::now();
-        let report = super::build::build_map(&dataset, &indices, &config)?;
+        let report = super::build::build_map(&indices, &config, |i| dataset.frame(i))?;
         let elapsed = t.elapsed().as_secs_f64();
         let map_path = out.join(format!("{kind}.mrfmap"));
         let ply_path = out.join(format!("{kind}.ply"));

@@ -2,9 +2,12 @@
 
 pub mod bench;
 pub mod build;
+pub mod compare;
 pub mod demo;
+pub mod eval;
 pub mod export;
 pub mod info;
+pub mod loo;
 pub mod simulate;
 
 /// clap parser for a strictly positive, finite number (resolution, max range).

@@ -152,8 +152,8 @@ pub fn viridis(t: f64) -> [u8; 3] {
 }
 
 /// Horizontal slices of a map against its scene at height `z`: four PNGs in `dir` named
-/// `slice_z{z}_{mean,sigma,abs_error,ic}.png`, one pixel per voxel over the map's x-y
-/// bounds, unallocated voxels grey, values on the viridis scale (mean, sigma and |error| on
+/// `slice_z{z}_{mean,sigma,abs_error,ic}.png` over the map's x-y bounds (world +y up), each
+/// voxel a square of pixels (at least 600 pixels across), unallocated voxels grey, values on the viridis scale (mean, sigma and |error| on
 /// [0, 1], sigma on [0, 0.5], I_c with gamma 0.5 on [0, 1]). Returns the files written.
 pub fn write_truth_slices(map: &Map, scene: &Scene, z: f64, dir: &Path) -> Result<Vec<std::path::PathBuf>> {
     let r = map.resolution();
@@ -169,23 +169,28 @@ pub fn write_truth_slices(map: &Map, scene: &Scene, z: f64, dir: &Path) -> Resul
         ("abs_error", |t| t.error().abs()),
         ("ic", |t| t.inconsistency(0.5)),
     ];
+    let scale = (600 / w.max(h)).max(1);
+    let (iw, ih) = (w * scale, h * scale);
     let mut written = Vec::new();
     for (name, value) in quantities {
-        let mut rgb = vec![128u8; w as usize * h as usize * 3];
+        let mut rgb = vec![128u8; iw as usize * ih as usize * 3];
         for py in 0..h {
             for px in 0..w {
                 // Image rows go down; world y goes up.
                 let key = VoxelKey([lo.0[0] + px as i32, hi.0[1] - py as i32, kz]);
-                if let Some(v) = map.voxels.get(key) {
-                    let (mean, sigma) = mean_sigma(map, v);
-                    let t = VoxelTruth { truth: true_occupancy(scene, key, r), mean, sigma };
-                    let i = (py as usize * w as usize + px as usize) * 3;
-                    rgb[i..i + 3].copy_from_slice(&viridis(value(&t)));
+                let Some(v) = map.voxels.get(key) else { continue };
+                let (mean, sigma) = mean_sigma(map, v);
+                let colour = viridis(value(&VoxelTruth { truth: true_occupancy(scene, key, r), mean, sigma }));
+                for y in py * scale..(py + 1) * scale {
+                    for x in px * scale..(px + 1) * scale {
+                        let i = (y as usize * iw as usize + x as usize) * 3;
+                        rgb[i..i + 3].copy_from_slice(&colour);
+                    }
                 }
             }
         }
         let path = dir.join(format!("slice_z{z}_{name}.png"));
-        write_rgb_png(&path, w, h, &rgb)?;
+        write_rgb_png(&path, iw, ih, &rgb)?;
         written.push(path);
     }
     Ok(written)

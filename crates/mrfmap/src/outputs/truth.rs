@@ -74,11 +74,13 @@ pub fn mean_sigma(map: &Map, v: &MapVoxel) -> (f64, f64) {
     (m, var.max(0.0).sqrt())
 }
 
-/// Per-voxel truth, mean and sigma for every allocated voxel of `map`.
+/// Per-voxel truth, mean and sigma for every allocated voxel of `map` (in parallel).
 pub fn voxel_truths(map: &Map, scene: &Scene) -> Vec<(VoxelKey, VoxelTruth)> {
+    use rayon::prelude::*;
     let r = map.resolution();
-    map.voxels
-        .iter()
+    let voxels: Vec<(VoxelKey, &MapVoxel)> = map.voxels.iter().collect();
+    voxels
+        .into_par_iter()
         .map(|(k, v)| {
             let (mean, sigma) = mean_sigma(map, v);
             (k, VoxelTruth { truth: true_occupancy(scene, k, r), mean, sigma })

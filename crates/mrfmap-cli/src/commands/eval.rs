@@ -1,0 +1,252 @@
+//! `mrfmap eval`: how good is a map? The MRFMap accuracy metric on held-out views of a
+//! dataset, and ground-truth metrics against an analytic scene. `loo` and `compare` reuse
+//! the scoring pieces here.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, bail};
+use mrfmap::frames::DepthImage;
+use mrfmap::map::Map;
+use mrfmap::outputs::pictures::{ray_plot_svg, write_accuracy_image, write_text, write_truth_slices};
+use mrfmap::outputs::{AccuracyParams, TruthMetrics, ViewScore, ray_profile, score_view, truth_metrics};
+use mrfmap::source::{Dataset, Scene};
+
+/// Options of the accuracy metric, shared by `eval`, `loo` and `compare`.
+#[derive(clap::Args, Clone, Copy)]
+pub struct MetricOptions {
+    /// Tolerance unit of the accuracy metric (m).
+    #[arg(long, default_value_t = 0.05, value_parser = super::positive)]
+    pub sigma: f64,
+    /// Tolerance in units of sigma (the MRFMap paper's text uses 1.5, its code 1).
+    #[arg(long, default_value_t = 1.0, value_parser = super::positive)]
+    pub k: f64,
+}
+
+impl MetricOptions {
+    /// Metric parameters for `map`.
+    pub fn params(&self, map: &Map) -> AccuracyParams {
+        AccuracyParams { sigma: self.sigma, k: self.k, ..AccuracyParams::for_map(map) }
+    }
+}
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// Map file.
+    map: PathBuf,
+    /// Dataset whose views are scored (its gt_depth/ when present, else depth/).
+    dataset: Option<PathBuf>,
+    /// Views to score (default: all).
+    #[arg(long, value_delimiter = ',')]
+    views: Vec<usize>,
+    #[command(flatten)]
+    metric: MetricOptions,
+    /// Print one JSON object instead of a table.
+    #[arg(long)]
+    json: bool,
+    /// Write per-view accuracy images (and the --pixel ray plot) into this folder.
+    #[arg(long)]
+    images: Option<PathBuf>,
+    /// Pixel "u,v" whose ray is plotted (p_occ, vis, omega) into --images.
+    #[arg(long, value_parser = parse_pixel)]
+    pixel: Option<(u32, u32)>,
+    /// Analytic scene the map was built from: report MAE, ROC AUC, I_c and sigma-error correlation.
+    #[arg(long)]
+    scene: Option<PathBuf>,
+    /// With --scene: write slices (mean, sigma, |error|, I_c) as PNG into this folder.
+    #[arg(long)]
+    slices: Option<PathBuf>,
+    /// Heights of the slices (m; default: the middle of the map).
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
+    slice_z: Vec<f64>,
+}
+
+pub fn parse_pixel(s: &str) -> Result<(u32, u32), String> {
+    let (u, v) = s.split_once(',').ok_or("expected u,v")?;
+    Ok((u.trim().parse().map_err(|e| format!("u: {e}"))?, v.trim().parse().map_err(|e| format!("v: {e}"))?))
+}
+
+/// The held-out depth of view `i`: `gt_depth/` when the dataset has it, else `depth/`.
+pub fn held_out_depth(dataset: &Dataset, i: usize) -> Result<DepthImage> {
+    match dataset.truth_depth(i)? {
+        Some(d) => Ok(d),
+        None => {
+            tracing::warn!("{}: no gt_depth/, scoring against the noisy depth/ images", dataset.root().display());
+            Ok(dataset.frame(i)?.depth)
+        }
+    }
+}
+
+/// Scores `map` on view `i` of `dataset`.
+pub fn score(map: &Map, dataset: &Dataset, i: usize, params: &AccuracyParams) -> Result<ViewScore> {
+    let depth = held_out_depth(dataset, i)?;
+    let info = &dataset.frames()[i];
+    Ok(score_view(map, dataset.camera(), &info.pose, &depth, params))
+}
+
+/// Mean and sample standard deviation (0 for one value); `None` when empty.
+pub fn mean_std(values: &[f64]) -> Option<(f64, f64)> {
+    if values.is_empty() {
+        return None;
+    }
+    let n = values.len() as f64;
+    let mean = values.iter().sum::<f64>() / n;
+    let var = if values.len() > 1 { values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0) } else { 0.0 };
+    Some((mean, var.sqrt()))
+}
+
+/// JSON number, `null` for NaN / missing.
+pub fn json_number(v: Option<f64>) -> String {
+    match v {
+        Some(x) if x.is_finite() => format!("{x}"),
+        _ => "null".into(),
+    }
+}
+
+/// `{"accuracy": mean, "views": [...]}` fields (without braces) for scored views.
+pub fn views_json(scores: &[(usize, ViewScore)]) -> String {
+    let accs: Vec<f64> = scores.iter().filter_map(|(_, s)| s.accuracy()).collect();
+    let views: Vec<String> = scores
+        .iter()
+        .map(|(v, s)| {
+            format!(
+                "{{\"view\": {v}, \"accuracy\": {}, \"accurate\": {}, \"valid\": {}, \"invalid\": {}}}",
+                json_number(s.accuracy()),
+                s.accurate,
+                s.valid(),
+                s.invalid
+            )
+        })
+        .collect();
+    format!("\"accuracy\": {}, \"views\": [{}]", json_number(mean_std(&accs).map(|m| m.0)), views.join(", "))
+}
+
+/// A text table of scored views with the mean +- std line.
+pub fn views_table(scores: &[(usize, ViewScore)]) -> String {
+    let mut t = String::from("view  accuracy  accurate     valid   invalid\n");
+    for (v, s) in scores {
+        let acc = s.accuracy().map_or("-".into(), |a| format!("{a:.4}"));
+        let _ = writeln!(t, "{v:>4}  {acc:>8}  {:>8}  {:>8}  {:>8}", s.accurate, s.valid(), s.invalid);
+    }
+    let accs: Vec<f64> = scores.iter().filter_map(|(_, s)| s.accuracy()).collect();
+    match mean_std(&accs) {
+        Some((m, sd)) => {
+            let _ = writeln!(t, "mean  {m:.4} +- {sd:.4} over {} views", accs.len());
+        }
+        None => t.push_str("mean  - (no view has a valid pixel)\n"),
+    }
+    t
+}
+
+/// Writes the accuracy image of a view, and the ray plot of `pixel` if given.
+pub fn write_view_pictures(
+    dir: &Path,
+    prefix: &str,
+    map: &Map,
+    dataset: &Dataset,
+    (view, score): (usize, &ViewScore),
+    pixel: Option<(u32, u32)>,
+    params: &AccuracyParams,
+) -> Result<Vec<PathBuf>> {
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    let mut written = vec![dir.join(format!("{prefix}view{view}_accuracy.png"))];
+    write_accuracy_image(&written[0], score)?;
+    if let Some((u, v)) = pixel {
+        let depth = held_out_depth(dataset, view)?;
+        let pose = &dataset.frames()[view].pose;
+        match ray_profile(map, dataset.camera(), pose, &depth, (u, v), params) {
+            Some((steps, verdict)) => {
+                let title = format!("{prefix}view {view}, pixel ({u}, {v}): {:?}", verdict.class);
+                let path = dir.join(format!("{prefix}view{view}_ray_{u}_{v}.svg"));
+                write_text(&path, &ray_plot_svg(&title, &steps, &verdict, params.k * params.sigma))?;
+                written.push(path);
+            }
+            None => tracing::warn!("view {view}: pixel ({u}, {v}) has no held-out depth or is outside the image"),
+        }
+    }
+    Ok(written)
+}
+
+fn truth_json(m: &TruthMetrics) -> String {
+    format!(
+        "{{\"voxels\": {}, \"mae\": {}, \"auc\": {}, \"ic_gamma_0.5\": {}, \"ic_gamma_2\": {}, \"pearson_sigma_error\": {}}}",
+        m.voxels,
+        json_number(Some(m.mae)),
+        json_number(Some(m.auc)),
+        json_number(Some(m.ic_half)),
+        json_number(Some(m.ic_two)),
+        json_number(Some(m.pearson_sigma_error))
+    )
+}
+
+pub fn run(a: Args) -> Result<()> {
+    if a.dataset.is_none() && a.scene.is_none() {
+        bail!(
+            "nothing to evaluate against: give a DATASET (accuracy metric) and/or --scene SCENE.toml (ground-truth metrics)"
+        );
+    }
+    if a.slices.is_some() && a.scene.is_none() {
+        bail!("--slices needs --scene");
+    }
+    let map = Map::load(&a.map)?;
+    let params = a.metric.params(&map);
+    let mut json_fields = Vec::new();
+    if let Some(ds_path) = &a.dataset {
+        let dataset = Dataset::open(ds_path)?;
+        let views = if a.views.is_empty() { (0..dataset.len()).collect() } else { a.views.clone() };
+        super::build::check_indices(dataset.len(), &views)?;
+        let bar = crate::progress::bar(views.len() as u64, "scoring");
+        let mut scores = Vec::new();
+        for &v in &views {
+            scores.push((v, score(&map, &dataset, v, &params)?));
+            bar.inc(1);
+        }
+        bar.finish_and_clear();
+        if let Some(dir) = &a.images {
+            for (v, s) in &scores {
+                write_view_pictures(dir, "", &map, &dataset, (*v, s), a.pixel, &params)?;
+            }
+        }
+        if a.json {
+            json_fields.push(views_json(&scores));
+        } else {
+            print!("{}", views_table(&scores));
+        }
+    }
+    if let Some(scene_path) = &a.scene {
+        let scene = Scene::load(scene_path)?;
+        let m = truth_metrics(&map, &scene);
+        if a.json {
+            json_fields.push(format!("\"truth\": {}", truth_json(&m)));
+        } else {
+            println!(
+                "ground truth ({} voxels): MAE {:.4}, ROC AUC {:.4}, I_c(0.5) {:.1} ({:.4}/voxel), I_c(2) {:.1} ({:.4}/voxel), corr(sigma, |e|) {:.4}",
+                m.voxels,
+                m.mae,
+                m.auc,
+                m.ic_half,
+                m.ic_half / m.voxels.max(1) as f64,
+                m.ic_two,
+                m.ic_two / m.voxels.max(1) as f64,
+                m.pearson_sigma_error
+            );
+        }
+        if let Some(dir) = &a.slices {
+            let heights = if a.slice_z.is_empty() {
+                let (lo, hi) = map.bounds().context("the map is empty: nothing to slice")?;
+                vec![0.5 * (lo[2] + hi[2])]
+            } else {
+                a.slice_z.clone()
+            };
+            for z in heights {
+                for p in write_truth_slices(&map, &scene, z, dir)? {
+                    tracing::info!("wrote {}", p.display());
+                }
+            }
+        }
+    }
+    if a.json {
+        println!("{{{}}}", json_fields.join(", "));
+    }
+    Ok(())
+}

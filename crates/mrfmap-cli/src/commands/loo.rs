@@ -1,0 +1,84 @@
+//! `mrfmap loo`: leave-one-out accuracy, as the MRFMap paper's tables: for each view, build
+//! a map from all other views and score it on the held-out one.
+
+use std::path::PathBuf;
+
+use anyhow::Result;
+use mrfmap::frames::Frame;
+use mrfmap::inference::EngineKind;
+use mrfmap::map::Map;
+use mrfmap::outputs::ViewScore;
+use mrfmap::source::Dataset;
+
+use super::build::{MapOptions, build_map, check_indices};
+use super::eval::{MetricOptions, score, views_json, views_table};
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// Dataset folder.
+    dataset: PathBuf,
+    /// Inference engine.
+    #[arg(long, default_value = "logodds")]
+    engine: String,
+    /// Voxel edge in metres.
+    #[arg(long, value_parser = super::positive, allow_hyphen_values = true)]
+    resolution: f64,
+    /// Views to hold out in turn (default: all).
+    #[arg(long, value_delimiter = ',')]
+    views: Vec<usize>,
+    #[command(flatten)]
+    options: MapOptions,
+    #[command(flatten)]
+    metric: MetricOptions,
+    /// Print one JSON object instead of a table.
+    #[arg(long)]
+    json: bool,
+}
+
+/// Loads every frame once (leave-one-out builds reuse them N times).
+pub fn load_frames(dataset: &Dataset) -> Result<Vec<Frame>> {
+    Ok((0..dataset.len()).map(|i| dataset.frame(i)).collect::<mrfmap::Result<Vec<_>>>()?)
+}
+
+/// Leave-one-out scores of `views` for one engine and resolution; `on_view` sees each
+/// held-out build (for pictures).
+#[allow(clippy::too_many_arguments)]
+pub fn leave_one_out(
+    dataset: &Dataset,
+    frames: &[Frame],
+    views: &[usize],
+    kind: EngineKind,
+    resolution: f64,
+    options: &MapOptions,
+    metric: &MetricOptions,
+    mut on_view: impl FnMut(usize, &Map, &ViewScore) -> Result<()>,
+) -> Result<Vec<(usize, ViewScore)>> {
+    let config = options.config(kind, resolution)?;
+    let mut scores = Vec::new();
+    for &view in views {
+        let others: Vec<usize> = (0..frames.len()).filter(|i| *i != view).collect();
+        let report = build_map(&others, &config, |i| Ok(frames[i].clone()))?;
+        let params = metric.params(&report.map);
+        let s = score(&report.map, dataset, view, &params)?;
+        tracing::info!("{kind} {resolution} m, view {view}: accuracy {:?}", s.accuracy());
+        on_view(view, &report.map, &s)?;
+        scores.push((view, s));
+    }
+    Ok(scores)
+}
+
+pub fn run(a: Args) -> Result<()> {
+    let kind: EngineKind = a.engine.parse()?;
+    let dataset = a.options.open(&a.dataset)?;
+    let views = if a.views.is_empty() { (0..dataset.len()).collect() } else { a.views.clone() };
+    check_indices(dataset.len(), &views)?;
+    let frames = load_frames(&dataset)?;
+    let scores = leave_one_out(&dataset, &frames, &views, kind, a.resolution, &a.options, &a.metric, |_, _, _| Ok(()))?;
+    if a.json {
+        println!("{{\"engine\": \"{kind}\", \"resolution\": {}, {}}}", a.resolution, views_json(&scores));
+    } else {
+        println!("leave-one-out, engine {kind}, resolution {} m", a.resolution);
+        print!("{}", views_table(&scores));
+    }
+    Ok(())
+}

@@ -40,6 +40,34 @@ pub struct Args {
     metric: MetricOptions,
 }
 
+/// The non-default options of this run, as command-line flags (for the report).
+fn extra_flags(a: &Args) -> String {
+    let mut f = String::new();
+    if !a.views.is_empty() {
+        let v: Vec<String> = a.views.iter().map(|v| v.to_string()).collect();
+        let _ = write!(f, " --views {}", v.join(","));
+    }
+    if let Some(b) = &a.options.bounds {
+        let _ = write!(f, " --bounds={b}");
+    }
+    if let Some(m) = a.options.max_range {
+        let _ = write!(f, " --max-range {m}");
+    }
+    if let Some(n) = &a.options.noise {
+        let _ = write!(f, " --noise {}", n.display());
+    }
+    if a.metric.sigma != 0.05 {
+        let _ = write!(f, " --sigma {}", a.metric.sigma);
+    }
+    if a.metric.k != 1.0 {
+        let _ = write!(f, " --k {}", a.metric.k);
+    }
+    if a.metric.paper_boundary {
+        f.push_str(" --paper-boundary");
+    }
+    f
+}
+
 pub fn run(a: Args) -> Result<()> {
     let kinds: Vec<EngineKind> = a.engines.iter().map(|e| e.parse()).collect::<mrfmap::Result<_>>()?;
     let dataset = a.options.open(&a.dataset)?;
@@ -64,13 +92,22 @@ pub fn run(a: Args) -> Result<()> {
         for &r in &a.resolutions {
             let prefix = format!("{kind}_{r}_");
             let mut files = Vec::new();
-            let scores = leave_one_out(&dataset, &frames, &views, kind, r, &a.options, &a.metric, |view, map, s| {
-                if view == picture_view {
-                    let params = a.metric.params(map);
-                    files = write_view_pictures(&a.output, &prefix, map, &dataset, (view, s), Some(pixel), &params)?;
-                }
-                Ok(())
-            })?;
+            let scores =
+                leave_one_out(&dataset, &frames, &views, kind, r, &a.options, &a.metric, |view, scorer, s| {
+                    if view == picture_view {
+                        let tolerance = a.metric.tolerance();
+                        files = write_view_pictures(
+                            &a.output,
+                            &prefix,
+                            scorer,
+                            &dataset,
+                            (view, s),
+                            Some(pixel),
+                            tolerance,
+                        )?;
+                    }
+                    Ok(())
+                })?;
             let accs: Vec<f64> = scores.iter().filter_map(|(_, s)| s.accuracy()).collect();
             match mean_std(&accs) {
                 Some((m, sd)) => {
@@ -94,21 +131,27 @@ pub fn run(a: Args) -> Result<()> {
         "# mrfmap comparison: {ds}\n\n\
          Leave-one-out accuracy (ALGORITHMS.md 6.1): each view is held out in turn, a map is built from the\n\
          other views' `depth/`, and the held-out view's `gt_depth/` (or `depth/`) is scored; mean +- sample std\n\
-         over {n} views. Tolerance {k} x {sigma} m. Views: {views:?}.\n\n{table}\n\
+         over {n} views. Tolerance {k} x {sigma} m; boundary rule: {rule}. Views: {views:?}.\n\n{table}\n\
          ## Pictures: view {picture_view}, ray of pixel ({pu}, {pv})\n\n\
          Accuracy images: yellow accurate, green inaccurate, purple invalid, black no depth. Ray plots: occupancy,\n\
          visibility and generating-surface density along the ray; purple line and band: held-out depth +- tolerance;\n\
          blue dashed: the map's most likely surface.\n{pictures}\n\
-         Command: `mrfmap compare {ds} --engines {engines} --resolutions {res} -o {out}`\n",
+         Command: `mrfmap compare {ds} --engines {engines} --resolutions {res} -o {out}{extra}`\n",
         ds = a.dataset.display(),
         n = views.len(),
         k = a.metric.k,
         sigma = a.metric.sigma,
+        rule = if a.metric.paper_boundary {
+            "the paper's (unstopped rays ending beyond the map are accurate)"
+        } else {
+            "ALGORITHMS.md 6.1 (unstopped rays ending beyond the map are invalid)"
+        },
         pu = pixel.0,
         pv = pixel.1,
         engines = a.engines.join(","),
         res = a.resolutions.iter().map(|r| r.to_string()).collect::<Vec<_>>().join(","),
         out = a.output.display(),
+        extra = extra_flags(&a),
     );
     let path = a.output.join("report.md");
     write_text(&path, &report)?;

@@ -8,8 +8,9 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result, bail};
 use mrfmap::frames::DepthImage;
 use mrfmap::map::Map;
+use mrfmap::outputs::AccuracyParams;
 use mrfmap::outputs::pictures::{ray_plot_svg, write_accuracy_image, write_text, write_truth_slices};
-use mrfmap::outputs::{AccuracyParams, TruthMetrics, ViewScore, ray_profile, score_view, truth_metrics};
+use mrfmap::outputs::{Scorer, TruthMetrics, ViewScore, truth_metrics};
 use mrfmap::source::{Dataset, Scene};
 
 /// Options of the accuracy metric, shared by `eval`, `loo` and `compare`.
@@ -21,12 +22,26 @@ pub struct MetricOptions {
     /// Tolerance in units of sigma (the MRFMap paper's text uses 1.5, its code 1).
     #[arg(long, default_value_t = 1.0, value_parser = super::positive)]
     pub k: f64,
+    /// The MRFMap paper's boundary rule: a ray the map does not stop, whose depth lies beyond
+    /// the mapped part, counts as accurate (default: invalid, as ALGORITHMS.md 6.1).
+    #[arg(long)]
+    pub paper_boundary: bool,
 }
 
 impl MetricOptions {
+    /// `k sigma` in metres.
+    pub fn tolerance(&self) -> f64 {
+        self.k * self.sigma
+    }
+
     /// Metric parameters for `map`.
     pub fn params(&self, map: &Map) -> AccuracyParams {
-        AccuracyParams { sigma: self.sigma, k: self.k, ..AccuracyParams::for_map(map) }
+        AccuracyParams {
+            sigma: self.sigma,
+            k: self.k,
+            beyond_map_is_accurate: self.paper_boundary,
+            ..AccuracyParams::for_map(map)
+        }
     }
 }
 
@@ -77,11 +92,14 @@ pub fn held_out_depth(dataset: &Dataset, i: usize) -> Result<DepthImage> {
     }
 }
 
-/// Scores `map` on view `i` of `dataset`.
-pub fn score(map: &Map, dataset: &Dataset, i: usize, params: &AccuracyParams) -> Result<ViewScore> {
+/// Scores view `i` of `dataset` with `scorer`.
+pub fn score(scorer: &Scorer, dataset: &Dataset, i: usize) -> Result<ViewScore> {
     let depth = held_out_depth(dataset, i)?;
     let info = &dataset.frames()[i];
-    Ok(score_view(map, dataset.camera(), &info.pose, &depth, params))
+    let t = std::time::Instant::now();
+    let s = scorer.score_view(dataset.camera(), &info.pose, &depth);
+    tracing::debug!("view {i} scored in {:.0} ms", t.elapsed().as_secs_f64() * 1e3);
+    Ok(s)
 }
 
 /// Mean and sample standard deviation (0 for one value); `None` when empty.
@@ -142,11 +160,11 @@ pub fn views_table(scores: &[(usize, ViewScore)]) -> String {
 pub fn write_view_pictures(
     dir: &Path,
     prefix: &str,
-    map: &Map,
+    scorer: &Scorer,
     dataset: &Dataset,
     (view, score): (usize, &ViewScore),
     pixel: Option<(u32, u32)>,
-    params: &AccuracyParams,
+    tolerance: f64,
 ) -> Result<Vec<PathBuf>> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let mut written = vec![dir.join(format!("{prefix}view{view}_accuracy.png"))];
@@ -154,11 +172,11 @@ pub fn write_view_pictures(
     if let Some((u, v)) = pixel {
         let depth = held_out_depth(dataset, view)?;
         let pose = &dataset.frames()[view].pose;
-        match ray_profile(map, dataset.camera(), pose, &depth, (u, v), params) {
+        match scorer.ray_profile(dataset.camera(), pose, &depth, (u, v)) {
             Some((steps, verdict)) => {
                 let title = format!("{prefix}view {view}, pixel ({u}, {v}): {:?}", verdict.class);
                 let path = dir.join(format!("{prefix}view{view}_ray_{u}_{v}.svg"));
-                write_text(&path, &ray_plot_svg(&title, &steps, &verdict, params.k * params.sigma))?;
+                write_text(&path, &ray_plot_svg(&title, &steps, &verdict, tolerance))?;
                 written.push(path);
             }
             None => tracing::warn!("view {view}: pixel ({u}, {v}) has no held-out depth or is outside the image"),
@@ -189,7 +207,7 @@ pub fn run(a: Args) -> Result<()> {
         bail!("--slices needs --scene");
     }
     let map = Map::load(&a.map)?;
-    let params = a.metric.params(&map);
+    let scorer = Scorer::new(&map, a.metric.params(&map));
     let mut json_fields = Vec::new();
     if let Some(ds_path) = &a.dataset {
         let dataset = Dataset::open(ds_path)?;
@@ -198,13 +216,13 @@ pub fn run(a: Args) -> Result<()> {
         let bar = crate::progress::bar(views.len() as u64, "scoring");
         let mut scores = Vec::new();
         for &v in &views {
-            scores.push((v, score(&map, &dataset, v, &params)?));
+            scores.push((v, score(&scorer, &dataset, v)?));
             bar.inc(1);
         }
         bar.finish_and_clear();
         if let Some(dir) = &a.images {
             for (v, s) in &scores {
-                write_view_pictures(dir, "", &map, &dataset, (*v, s), a.pixel, &params)?;
+                write_view_pictures(dir, "", &scorer, &dataset, (*v, s), a.pixel, a.metric.tolerance())?;
             }
         }
         if a.json {

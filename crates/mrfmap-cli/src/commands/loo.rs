@@ -6,8 +6,7 @@ use std::path::PathBuf;
 use anyhow::Result;
 use mrfmap::frames::Frame;
 use mrfmap::inference::EngineKind;
-use mrfmap::map::Map;
-use mrfmap::outputs::ViewScore;
+use mrfmap::outputs::{Scorer, ViewScore};
 use mrfmap::source::Dataset;
 
 use super::build::{MapOptions, build_map, check_indices};
@@ -51,17 +50,17 @@ pub fn leave_one_out(
     resolution: f64,
     options: &MapOptions,
     metric: &MetricOptions,
-    mut on_view: impl FnMut(usize, &Map, &ViewScore) -> Result<()>,
+    mut on_view: impl FnMut(usize, &Scorer, &ViewScore) -> Result<()>,
 ) -> Result<Vec<(usize, ViewScore)>> {
     let config = options.config(kind, resolution)?;
     let mut scores = Vec::new();
     for &view in views {
         let others: Vec<usize> = (0..frames.len()).filter(|i| *i != view).collect();
         let report = build_map(&others, &config, |i| Ok(frames[i].clone()))?;
-        let params = metric.params(&report.map);
-        let s = score(&report.map, dataset, view, &params)?;
+        let scorer = Scorer::new(&report.map, metric.params(&report.map));
+        let s = score(&scorer, dataset, view)?;
         tracing::info!("{kind} {resolution} m, view {view}: accuracy {:?}", s.accuracy());
-        on_view(view, &report.map, &s)?;
+        on_view(view, &scorer, &s)?;
         scores.push((view, s));
     }
     Ok(scores)

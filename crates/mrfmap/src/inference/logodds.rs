@@ -12,6 +12,8 @@
 //! picks the beam nearest in bearing), ties broken by pixel index, so it too is identical
 //! for any thread count. It is meant for the papers' experiments, not for speed.
 
+use std::ops::ControlFlow;
+
 use rayon::prelude::*;
 use rustc_hash::FxHashMap;
 
@@ -197,12 +199,15 @@ impl LogOddsEngine {
                     let Some(seg) = limits.segment(&ray, 0.5 * r_ramp + r_top) else { continue };
                     let id = ray.v as u64 * width + ray.u as u64;
                     for_each_crossing(ray.origin, ray.dir, seg.start, seg.end, r, |c| {
-                        let Some(p) = model.ramp_probability(0.5 * (c.s_in + c.s_out), z) else { return };
+                        let Some(p) = model.ramp_probability(0.5 * (c.s_in + c.s_out), z) else {
+                            return ControlFlow::Break(()); // past the plateau: the rest of the ray too
+                        };
                         let centre = c.key.center(r);
                         let d = [0, 1, 2].map(|a| centre[a] - ray.origin[a]);
                         let t = d[0] * ray.dir[0] + d[1] * ray.dir[1] + d[2] * ray.dir[2];
                         let dist2 = d[0] * d[0] + d[1] * d[1] + d[2] * d[2] - t * t;
                         keep_closest(&mut best, c.key, (dist2, id, logit(p) as f32));
+                        ControlFlow::Continue(())
                     });
                 }
                 best
@@ -337,6 +342,7 @@ impl RowMarker {
             let slot = c.key.slot();
             self.marks[i].1.free[slot >> 6] |= 1 << (slot & 63);
             last = Some((i, slot));
+            ControlFlow::Continue(())
         });
         if let (Some((i, slot)), true) = (last, seg.hits_surface) {
             self.marks[i].1.hit[slot >> 6] |= 1 << (slot & 63);

@@ -257,6 +257,20 @@ impl<V: Copy + Default> Grid<V> {
         (lo[0] <= hi[0]).then_some((VoxelKey(lo), VoxelKey(hi)))
     }
 
+    /// Inclusive min and max voxel keys of the allocated *bricks* (a superset of
+    /// [`Grid::key_bounds`], 512 times cheaper to compute), `None` when empty.
+    pub fn brick_key_bounds(&self) -> Option<(VoxelKey, VoxelKey)> {
+        let mut lo = [i32::MAX; 3];
+        let mut hi = [i32::MIN; 3];
+        for k in self.bricks.keys() {
+            for a in 0..3 {
+                lo[a] = lo[a].min(k.0[a] << BRICK_SHIFT);
+                hi[a] = hi[a].max((k.0[a] << BRICK_SHIFT) + BRICK_EDGE - 1);
+            }
+        }
+        (lo[0] <= hi[0]).then_some((VoxelKey(lo), VoxelKey(hi)))
+    }
+
     /// A grid of the same shape with every value mapped through `f`.
     pub fn map<W: Copy + Default>(&self, mut f: impl FnMut(&V) -> W) -> Grid<W> {
         let mut out = Grid { resolution: self.resolution, bricks: FxHashMap::default() };
@@ -312,6 +326,13 @@ mod tests {
         assert_eq!(got, reference.into_iter().collect::<Vec<_>>());
         let (lo, hi) = grid.key_bounds().unwrap();
         assert!(lo.0.iter().all(|&v| v >= -32) && hi.0.iter().all(|&v| v < 32));
+        let (blo, bhi) = grid.brick_key_bounds().unwrap();
+        assert!(
+            (0..3).all(|a| blo.0[a] <= lo.0[a]
+                && lo.0[a] - blo.0[a] < 8
+                && bhi.0[a] >= hi.0[a]
+                && bhi.0[a] - hi.0[a] < 8)
+        );
         assert!(Grid::<f32>::new(0.0).is_err());
         assert!(Grid::<f32>::new(f64::NAN).is_err());
     }

@@ -12,17 +12,20 @@
 //! - visibility never below 0.9 (the map does not explain a surface): *inaccurate* if the
 //!   mapped part of the ray reached `r_D` (the map claims free space where the surface is),
 //!   else *invalid* (the map ended first). The MRFMap paper instead counts the latter as
-//!   accurate when the measurement lies beyond the map boundary; ALGORITHMS.md rules here;
+//!   accurate ("the measurement lies beyond the map boundary"); ALGORITHMS.md rules by
+//!   default and [`AccuracyParams::beyond_map_is_accurate`] selects the paper's rule;
 //! - otherwise *accurate* iff `|argmax omega - r_D| <= k sigma` (defaults `k = 1`,
 //!   `sigma = 0.05 m`: the reference implementation's setting; the paper's text says 1.5 sigma).
 //!
 //! Unallocated voxels read as empty; for log-odds maps voxels at or below the occupancy
 //! threshold read as empty too, as the paper did for OctoMap.
 
+use std::ops::ControlFlow;
+
 use rayon::prelude::*;
 
 use crate::frames::{Camera, DepthImage, Pose};
-use crate::map::{Brick, BrickKey, Map, MapVoxel, OCCUPIED_THRESHOLD};
+use crate::map::{BRICK_EDGE, BRICK_VOXELS, BrickKey, Map, MapVoxel, OCCUPIED_THRESHOLD};
 use crate::rays::{Aabb, for_each_crossing};
 
 /// Occupancies are clamped below 1 by this much so that `alpha` stays finite.
@@ -40,6 +43,10 @@ pub struct AccuracyParams {
     pub k: f64,
     /// Occupancies at or below this read as empty (`Some(0.5)` for log-odds maps).
     pub empty_at_or_below: Option<f32>,
+    /// The MRFMap paper's boundary rule: a ray the map does not stop (visibility stays at or
+    /// above 0.9) whose held-out depth lies beyond the mapped part counts as *accurate*
+    /// instead of *invalid*. Off by default (ALGORITHMS.md 6.1).
+    pub beyond_map_is_accurate: bool,
 }
 
 impl AccuracyParams {
@@ -49,6 +56,7 @@ impl AccuracyParams {
             sigma: 0.05,
             k: 1.0,
             empty_at_or_below: (map.engine == "logodds").then_some(OCCUPIED_THRESHOLD),
+            beyond_map_is_accurate: false,
         }
     }
 
@@ -99,57 +107,125 @@ pub struct RayVerdict {
     pub range: f64,
 }
 
-/// A ray in world coordinates with the map's bounds and lookups, walked once per pixel.
-struct RayWalk<'a> {
-    map: &'a Map,
-    bounds: Aabb,
-    params: AccuracyParams,
+/// What the walk needs to know about a brick without visiting its voxels.
+#[derive(Clone, Copy, Debug)]
+struct BrickSummary {
+    /// Every voxel reads as empty: the walk crosses the brick in one step.
+    empty: bool,
+    /// Every voxel is allocated (so "mapped space" covers the whole brick).
+    full: bool,
 }
 
-impl RayWalk<'_> {
-    /// Walks `origin + s dir` through the map and classifies it against range `r_d`;
-    /// `profile` receives every voxel until the walk stops.
-    fn run(&self, origin: [f64; 3], dir: [f64; 3], r_d: f64, mut profile: impl FnMut(ProfileStep)) -> RayVerdict {
+/// Scores views and rays against one map. Building it summarises the map once (bounds,
+/// the largest occupancy, which bricks read as empty), so reuse it for many views.
+///
+/// Rays are walked in two levels: brick by brick, and voxel by voxel only inside bricks that
+/// hold something the metric can see. Free and unknown space — most of every ray — is
+/// crossed eight voxels at a time. A ray stops once its verdict cannot change: visibility
+/// below 0.9 and no voxel of the map dense enough to beat its best peak.
+pub struct Scorer<'a> {
+    map: &'a Map,
+    params: AccuracyParams,
+    /// Allocated bricks' bounds (unallocated voxels inside read as empty); `None` for an empty map.
+    bounds: Option<Aabb>,
+    bricks: rustc_hash::FxHashMap<BrickKey, BrickSummary>,
+    /// Largest occlusion density of any voxel: bounds what the rest of a ray can add.
+    alpha_max: f64,
+}
+
+impl<'a> Scorer<'a> {
+    /// Summarises `map` for scoring with `params`.
+    pub fn new(map: &'a Map, params: AccuracyParams) -> Self {
+        let r = map.resolution();
+        let bounds = map
+            .voxels
+            .brick_key_bounds()
+            .map(|(lo, hi)| Aabb { min: lo.0.map(|i| i as f64 * r), max: hi.0.map(|i| (i + 1) as f64 * r) });
+        let mut p_max = 0.0f64;
+        let bricks = map
+            .voxels
+            .bricks()
+            .map(|(k, b)| {
+                let brick_max = b.iter().map(|(_, v)| params.occupancy(v)).fold(0.0, f64::max);
+                p_max = p_max.max(brick_max);
+                (*k, BrickSummary { empty: brick_max == 0.0, full: b.len() == BRICK_VOXELS })
+            })
+            .collect();
+        Scorer { map, params, bounds, bricks, alpha_max: -(1.0 - p_max).ln() / r }
+    }
+
+    /// Walks `origin + s dir` (unit `dir`) through the map and classifies it against the
+    /// held-out range `r_d`; `profile` receives every step (a voxel, or a whole empty brick).
+    pub fn classify_ray(
+        &self,
+        origin: [f64; 3],
+        dir: [f64; 3],
+        r_d: f64,
+        mut profile: impl FnMut(ProfileStep),
+    ) -> RayVerdict {
         let invalid = RayVerdict { class: PixelClass::Invalid, peak: None, range: r_d };
-        let Some((s0, s1)) = self.bounds.clip(origin, dir, 0.0, f64::INFINITY) else { return invalid };
+        let Some((s0, s1)) = self.bounds.and_then(|b| b.clip(origin, dir, 0.0, f64::INFINITY)) else {
+            return invalid;
+        };
         let r = self.map.resolution();
-        let alpha_max = -(1.0 - P_MAX).ln() / r;
         let mut vis = 1.0f64;
         let mut best = (0.0f64, f64::NAN); // (omega, range)
         let mut last_mapped: Option<f64> = None;
-        let mut cached: Option<(BrickKey, Option<&Brick<MapVoxel>>)> = None;
-        let mut done = false;
-        for_each_crossing(origin, dir, s0, s1, r, |c| {
-            if done {
-                return;
-            }
-            let bk = c.key.brick();
-            let brick = match cached {
-                Some((k, b)) if k == bk => b,
-                _ => {
-                    let b = self.map.voxels.brick(bk);
-                    cached = Some((bk, b));
-                    b
+        let brick_edge = r * BRICK_EDGE as f64;
+        // The verdict is settled once the visibility is below the floor (so the peak rule
+        // applies) and even the densest voxel of the map could not beat the best peak.
+        let settled = |vis: f64, best: f64| vis < VISIBILITY_FLOOR && self.alpha_max * vis < best;
+        for_each_crossing(origin, dir, s0, s1, brick_edge, |b| {
+            let key = BrickKey(b.key.0);
+            let empty_step =
+                |vis| ProfileStep { s_in: b.s_in, s_out: b.s_out, occupancy: 0.0, alpha: 0.0, visibility: vis };
+            match self.bricks.get(&key) {
+                None => {
+                    profile(empty_step(vis));
+                    return ControlFlow::Continue(());
                 }
-            };
-            let voxel = brick.and_then(|b| b.get(c.key.slot()));
-            let p = voxel.map_or(0.0, |v| self.params.occupancy(v));
-            if voxel.is_some() {
-                last_mapped = Some(c.s_out);
+                Some(BrickSummary { empty: true, full: true }) => {
+                    last_mapped = Some(b.s_out);
+                    profile(empty_step(vis));
+                    return ControlFlow::Continue(());
+                }
+                Some(_) => {}
             }
-            let alpha = -(1.0 - p).ln() / r;
-            profile(ProfileStep { s_in: c.s_in, s_out: c.s_out, occupancy: p, alpha, visibility: vis });
-            if alpha * vis > best.0 {
-                best = (alpha * vis, c.s_in);
-            }
-            vis *= (-alpha * c.length()).exp();
-            // Nothing further can beat the best peak once even a certain voxel could not.
-            done = alpha_max * vis < best.0;
+            let brick = self.map.voxels.brick(key);
+            for_each_crossing(origin, dir, b.s_in, b.s_out, r, |c| {
+                // Rounding at brick faces can put a voxel in the neighbouring brick.
+                let voxel = if c.key.brick() == key {
+                    brick.and_then(|br| br.get(c.key.slot()))
+                } else {
+                    self.map.voxels.get(c.key)
+                };
+                let p = voxel.map_or(0.0, |v| self.params.occupancy(v));
+                if voxel.is_some() {
+                    last_mapped = Some(c.s_out);
+                }
+                // Empty space needs no logarithm or exponential.
+                let alpha = if p > 0.0 { -(1.0 - p).ln() / r } else { 0.0 };
+                profile(ProfileStep { s_in: c.s_in, s_out: c.s_out, occupancy: p, alpha, visibility: vis });
+                if alpha > 0.0 {
+                    if alpha * vis > best.0 {
+                        best = (alpha * vis, c.s_in);
+                    }
+                    vis *= (-alpha * c.length()).exp();
+                }
+                if settled(vis, best.0) { ControlFlow::Break(()) } else { ControlFlow::Continue(()) }
+            });
+            if settled(vis, best.0) { ControlFlow::Break(()) } else { ControlFlow::Continue(()) }
         });
         let Some(last_mapped) = last_mapped else { return invalid };
-        let min_vis = vis; // visibility only falls along the ray
-        if min_vis >= VISIBILITY_FLOOR {
-            let class = if last_mapped >= r_d { PixelClass::Inaccurate } else { PixelClass::Invalid };
+        if vis >= VISIBILITY_FLOOR {
+            // Visibility only falls along a ray: it never dropped below the floor.
+            let class = if last_mapped >= r_d {
+                PixelClass::Inaccurate
+            } else if self.params.beyond_map_is_accurate {
+                PixelClass::Accurate
+            } else {
+                PixelClass::Invalid
+            };
             return RayVerdict { class, peak: None, range: r_d };
         }
         let accurate = (best.1 - r_d).abs() <= self.params.k * self.params.sigma;
@@ -158,6 +234,51 @@ impl RayWalk<'_> {
             peak: Some(best.1),
             range: r_d,
         }
+    }
+
+    /// Scores the held-out z-depth image `depth` seen from `pose` (parallel by row).
+    pub fn score_view(&self, camera: &Camera, pose: &Pose, depth: &DepthImage) -> ViewScore {
+        let (w, h) = (depth.width(), depth.height());
+        let classes: Vec<PixelClass> = (0..h)
+            .into_par_iter()
+            .flat_map_iter(|v| {
+                (0..w).map(move |u| match depth.get(u, v) {
+                    None => PixelClass::NoDepth,
+                    Some(z) => {
+                        let (o, d, norm) = pixel_ray(camera, pose, u, v);
+                        self.classify_ray(o, d, z as f64 * norm, |_| {}).class
+                    }
+                })
+            })
+            .collect();
+        let count = |c| classes.iter().filter(|x| **x == c).count();
+        ViewScore {
+            width: w,
+            height: h,
+            accurate: count(PixelClass::Accurate),
+            inaccurate: count(PixelClass::Inaccurate),
+            invalid: count(PixelClass::Invalid),
+            classes,
+        }
+    }
+
+    /// The profile of pixel `(u, v)`'s ray (for the per-ray plot) and its verdict; `None`
+    /// when `depth` has no value there or the pixel is outside the image.
+    pub fn ray_profile(
+        &self,
+        camera: &Camera,
+        pose: &Pose,
+        depth: &DepthImage,
+        (u, v): (u32, u32),
+    ) -> Option<(Vec<ProfileStep>, RayVerdict)> {
+        if u >= depth.width() || v >= depth.height() {
+            return None;
+        }
+        let z = depth.get(u, v)?;
+        let (o, d, norm) = pixel_ray(camera, pose, u, v);
+        let mut steps = Vec::new();
+        let verdict = self.classify_ray(o, d, z as f64 * norm, |s| steps.push(s));
+        Some((steps, verdict))
     }
 }
 
@@ -199,12 +320,8 @@ fn pixel_ray(camera: &Camera, pose: &Pose, u: u32, v: u32) -> ([f64; 3], [f64; 3
     ([o.x, o.y, o.z], [d.x, d.y, d.z], norm)
 }
 
-fn walker<'a>(map: &'a Map, params: AccuracyParams) -> Option<RayWalk<'a>> {
-    let (lo, hi) = map.bounds()?;
-    Some(RayWalk { map, bounds: Aabb { min: lo, max: hi }, params })
-}
-
-/// Scores `map` against the held-out z-depth image `depth` seen from `pose` (parallel by row).
+/// Scores `map` against the held-out z-depth image `depth` seen from `pose`; a one-view
+/// shorthand for [`Scorer::score_view`].
 ///
 /// ```
 /// use mrfmap::frames::{Camera, DepthImage, look_at};
@@ -223,54 +340,7 @@ fn walker<'a>(map: &'a Map, params: AccuracyParams) -> Option<RayWalk<'a>> {
 /// assert_eq!((score.accurate, score.valid()), (1, 1));
 /// ```
 pub fn score_view(map: &Map, camera: &Camera, pose: &Pose, depth: &DepthImage, params: &AccuracyParams) -> ViewScore {
-    let (w, h) = (depth.width(), depth.height());
-    let walk = walker(map, *params);
-    let classes: Vec<PixelClass> = (0..h)
-        .into_par_iter()
-        .flat_map_iter(|v| {
-            let walk = walk.as_ref();
-            (0..w).map(move |u| match (depth.get(u, v), walk) {
-                (None, _) => PixelClass::NoDepth,
-                (Some(_), None) => PixelClass::Invalid,
-                (Some(z), Some(walk)) => {
-                    let (o, d, norm) = pixel_ray(camera, pose, u, v);
-                    walk.run(o, d, z as f64 * norm, |_| {}).class
-                }
-            })
-        })
-        .collect();
-    let count = |c| classes.iter().filter(|x| **x == c).count();
-    ViewScore {
-        width: w,
-        height: h,
-        accurate: count(PixelClass::Accurate),
-        inaccurate: count(PixelClass::Inaccurate),
-        invalid: count(PixelClass::Invalid),
-        classes,
-    }
-}
-
-/// The full profile of one pixel's ray (for the per-ray plot) and its verdict; `None` when
-/// the held-out image has no depth at `(u, v)` or the pixel is outside the image.
-pub fn ray_profile(
-    map: &Map,
-    camera: &Camera,
-    pose: &Pose,
-    depth: &DepthImage,
-    (u, v): (u32, u32),
-    params: &AccuracyParams,
-) -> Option<(Vec<ProfileStep>, RayVerdict)> {
-    if u >= depth.width() || v >= depth.height() {
-        return None;
-    }
-    let z = depth.get(u, v)?;
-    let (o, d, norm) = pixel_ray(camera, pose, u, v);
-    let mut steps = Vec::new();
-    let verdict = match walker(map, *params) {
-        Some(walk) => walk.run(o, d, z as f64 * norm, |s| steps.push(s)),
-        None => RayVerdict { class: PixelClass::Invalid, peak: None, range: z as f64 * norm },
-    };
-    Some((steps, verdict))
+    Scorer::new(map, *params).score_view(camera, pose, depth)
 }
 
 #[cfg(test)]
@@ -279,8 +349,8 @@ mod tests {
     use crate::map::VoxelKey;
     use crate::random::Rng;
 
-    fn walk(map: &Map) -> RayWalk<'_> {
-        walker(map, AccuracyParams { sigma: 0.05, k: 1.0, empty_at_or_below: None }).unwrap()
+    fn walk(map: &Map) -> Scorer<'_> {
+        Scorer::new(map, AccuracyParams { sigma: 0.05, k: 1.0, empty_at_or_below: None, beyond_map_is_accurate: false })
     }
 
     /// A map with a slab of voxels at x index `i` (all y, z in -3..3), occupancy `p`.
@@ -300,11 +370,11 @@ mod tests {
         let mut map = Map::new("mrf", 0.1).unwrap();
         slab(&mut map, 0, 0.01);
         slab(&mut map, 20, 0.9);
-        let v = walk(&map).run(O, X, 2.03, |_| {});
+        let v = walk(&map).classify_ray(O, X, 2.03, |_| {});
         assert_eq!(v.class, PixelClass::Accurate);
         assert!((v.peak.unwrap() - 2.0).abs() < 1e-12);
         // 0.2 m further away than the wall: the map explains the ray wrongly.
-        assert_eq!(walk(&map).run(O, X, 2.25, |_| {}).class, PixelClass::Inaccurate);
+        assert_eq!(walk(&map).classify_ray(O, X, 2.25, |_| {}).class, PixelClass::Inaccurate);
     }
 
     #[test]
@@ -312,7 +382,7 @@ mod tests {
         let mut map = Map::new("mrf", 0.1).unwrap();
         slab(&mut map, 10, 0.8);
         slab(&mut map, 20, 0.99);
-        let v = walk(&map).run(O, X, 2.0, |_| {});
+        let v = walk(&map).classify_ray(O, X, 2.0, |_| {});
         assert_eq!(v.class, PixelClass::Inaccurate);
         assert!((v.peak.unwrap() - 1.0).abs() < 1e-12);
     }
@@ -320,7 +390,7 @@ mod tests {
     #[test]
     fn empty_and_free_maps() {
         let map = Map::new("mrf", 0.1).unwrap();
-        assert!(walker(&map, AccuracyParams::for_map(&map)).is_none(), "empty map has no bounds");
+        assert!(Scorer::new(&map, AccuracyParams::for_map(&map)).bounds.is_none(), "empty map has no bounds");
         let cam = Camera::new(10.0, 10.0, 1.5, 1.5, 4, 4, 1000.0).unwrap();
         let mut depth = DepthImage::new(4, 4);
         depth.set(0, 0, 1.0);
@@ -332,8 +402,11 @@ mod tests {
         for i in 0..15 {
             slab(&mut free, i, 0.001);
         }
-        assert_eq!(walk(&free).run(O, X, 1.0, |_| {}).class, PixelClass::Inaccurate);
-        assert_eq!(walk(&free).run(O, X, 2.0, |_| {}).class, PixelClass::Invalid);
+        assert_eq!(walk(&free).classify_ray(O, X, 1.0, |_| {}).class, PixelClass::Inaccurate);
+        assert_eq!(walk(&free).classify_ray(O, X, 2.0, |_| {}).class, PixelClass::Invalid);
+        let paper = AccuracyParams { beyond_map_is_accurate: true, ..AccuracyParams::for_map(&free) };
+        assert_eq!(Scorer::new(&free, paper).classify_ray(O, X, 2.0, |_| {}).class, PixelClass::Accurate);
+        assert_eq!(Scorer::new(&free, paper).classify_ray(O, X, 1.0, |_| {}).class, PixelClass::Inaccurate);
     }
 
     #[test]
@@ -343,7 +416,7 @@ mod tests {
         slab(&mut map, 20, 0.8);
         let params = AccuracyParams::for_map(&map);
         assert_eq!(params.empty_at_or_below, Some(0.5));
-        let v = walker(&map, params).unwrap().run(O, X, 2.02, |_| {});
+        let v = Scorer::new(&map, params).classify_ray(O, X, 2.02, |_| {});
         assert_eq!(v.class, PixelClass::Accurate);
     }
 
@@ -352,12 +425,14 @@ mod tests {
         // A ray clipping a voxel over a quarter of its width loses (1 - p)^(1/4) visibility.
         let mut map = Map::new("mrf", 0.1).unwrap();
         map.voxels.insert(VoxelKey([5, 0, 0]), MapVoxel { occupancy: 0.9, variance: 0.0 });
-        map.voxels.insert(VoxelKey([9, 5, 0]), MapVoxel { occupancy: 0.0, variance: 0.0 }); // widens the bounds
+        // Off the ray; widens the bounds, and is dense enough that the walk goes on past the
+        // partial voxel (it stops once nothing in the map could beat its best peak).
+        map.voxels.insert(VoxelKey([9, 5, 0]), MapVoxel { occupancy: 0.999, variance: 0.0 });
         // Enters voxel (5, 0, 0) through x = 0.5 at y = 0.075 and leaves through y = 0.1.
         let dir = [0.6, 0.8, 0.0];
         let origin = [0.5 - 0.06, 0.075 - 0.08, 0.05];
         let mut steps = Vec::new();
-        walk(&map).run(origin, dir, 1.0, |s| steps.push(s));
+        walk(&map).classify_ray(origin, dir, 1.0, |s| steps.push(s));
         let s = steps.iter().find(|s| s.occupancy > 0.0).unwrap();
         let fraction = (s.s_out - s.s_in) / 0.1;
         assert!((fraction - 0.3125).abs() < 1e-9, "fraction {fraction}");
@@ -382,7 +457,7 @@ mod tests {
             let n = dir.iter().map(|d| d * d).sum::<f64>().sqrt();
             dir = dir.map(|d| d / n);
             let mut steps = Vec::new();
-            w.run(origin, dir, 100.0, |s| steps.push(s));
+            w.classify_ray(origin, dir, 100.0, |s| steps.push(s));
             // Integrate alpha by midpoint sampling from the walk's start to each step's entry.
             let h = 1e-5;
             let mut integral = 0.0f64;

@@ -1,7 +1,7 @@
 //! Outputs: what leaves the library — exported files, evaluation and pictures.
 //!
 //! - [`write_ply`] / [`read_ply`]: voxel centres with occupancy (and variance) as PLY;
-//! - [`score_view`] / [`ray_profile`]: the MRFMap accuracy metric on a held-out view;
+//! - [`Scorer`] (and the shorthand [`score_view`]): the MRFMap accuracy metric on held-out views;
 //! - [`truth_metrics`]: MAE, ROC AUC, inconsistency and sigma-error correlation against an
 //!   analytic scene;
 //! - `pictures`: accuracy images, per-ray plots, map slices.
@@ -12,7 +12,7 @@ mod ply;
 mod truth;
 
 pub use accuracy::{
-    AccuracyParams, PixelClass, ProfileStep, RayVerdict, VISIBILITY_FLOOR, ViewScore, ray_profile, score_view,
+    AccuracyParams, PixelClass, ProfileStep, RayVerdict, Scorer, VISIBILITY_FLOOR, ViewScore, score_view,
 };
 pub use ply::{PlyOptions, PlyVertices, read_ply, write_ply};
 pub use truth::{TruthMetrics, VoxelTruth, mean_sigma, pearson, roc_auc, true_occupancy, truth_metrics, voxel_truths};

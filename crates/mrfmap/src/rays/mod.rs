@@ -191,7 +191,9 @@ impl RayLimits {
         };
         if let Some(b) = &self.bounds {
             let (a, e) = b.clip(ray.origin, ray.dir, seg.start, seg.end)?;
-            if e < ray.range {
+            // A surface exactly on a face of the box (a floor at z = 0 with bounds from z = 0)
+            // is inside; the slab arithmetic may put the exit a rounding error before it.
+            if ray.range - e > 1e-9 * ray.range.max(1.0) {
                 seg.hits_surface = false;
             }
             seg.start = a;
@@ -215,6 +217,16 @@ mod tests {
         let s = limits.segment(&ray(5.0), 0.0).unwrap();
         assert_eq!((s.start, s.end, s.hits_surface), (1.0, 3.0, false));
         assert!(limits.segment(&ray(0.5), 0.0).is_none());
+        // A surface on the box face, reached along an oblique ray, is inside.
+        let b = Aabb::new([-2.0, -2.0, 0.0], [2.0, 2.0, 3.0]).unwrap();
+        let limits = RayLimits { max_range: None, bounds: Some(b) };
+        let origin = [0.3, -0.7, 2.0];
+        let dir = [0.3f64, 0.4, -0.7];
+        let n = (dir[0] * dir[0] + dir[1] * dir[1] + dir[2] * dir[2]).sqrt();
+        let dir = dir.map(|d| d / n);
+        let range = 2.0 / -dir[2]; // reaches z = 0 (up to rounding)
+        let ray = PixelRay { u: 0, v: 0, origin, dir, range, cz: 1.0 };
+        assert!(limits.segment(&ray, 0.0).unwrap().hits_surface);
         assert!(Aabb::parse("0,0,0,1,1").is_err());
         assert!(Aabb::parse("0,0,0,-1,1,1").is_err());
     }

@@ -16,7 +16,7 @@
 //! use mrfmap::source::Dataset;
 //!
 //! let dataset = Dataset::open("../shared/data/icl-livingroom-5".as_ref())?;
-//! let mut engine = new_engine(&EngineConfig { kind: EngineKind::LogOdds, resolution: 0.05, limits: Default::default() })?;
+//! let mut engine = new_engine(&EngineConfig::new(EngineKind::LogOdds, 0.05))?;
 //! for i in 0..dataset.len() {
 //!     engine.integrate(&dataset.frame(i)?)?;
 //! }

@@ -39,11 +39,12 @@ pub fn run(a: Args) -> Result<()> {
         let mut best = f64::INFINITY;
         let mut last = None;
         for _ in 0..a.repeat.max(1) {
-            let mut engine = new_engine(&EngineConfig { kind, resolution, limits: Default::default() })?;
+            let mut engine = new_engine(&EngineConfig::new(kind, resolution))?;
             let t = Instant::now();
             for f in &frames {
                 engine.integrate(f)?;
             }
+            engine.finish()?;
             best = best.min(t.elapsed().as_secs_f64());
             last = Some(engine.map());
         }

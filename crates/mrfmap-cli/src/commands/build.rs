@@ -6,7 +6,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use mrfmap::frames::Frame;
-use mrfmap::inference::{EngineConfig, EngineKind, new_engine};
+use mrfmap::inference::{Allocation, EngineConfig, EngineKind, MrfParams, new_engine};
 use mrfmap::map::Map;
 use mrfmap::rays::{Aabb, RayLimits};
 use mrfmap::source::Dataset;
@@ -23,6 +23,15 @@ pub struct MapOptions {
     /// Noise model file (default: the dataset's noise.toml when present).
     #[arg(long)]
     pub noise: Option<PathBuf>,
+    /// MRF: belief-propagation iterations.
+    #[arg(long, default_value_t = 3)]
+    pub iterations: usize,
+    /// MRF: prior occupancy of every voxel.
+    #[arg(long, default_value_t = 0.1)]
+    pub prior: f64,
+    /// MRF: allocate bricks around depth points only (band) or along whole rays (full).
+    #[arg(long, default_value = "band", value_parser = ["band", "full"])]
+    pub allocation: String,
 }
 
 impl MapOptions {
@@ -38,7 +47,13 @@ impl MapOptions {
     /// The engine configuration for `kind` at `resolution`.
     pub fn config(&self, kind: EngineKind, resolution: f64) -> Result<EngineConfig> {
         let bounds = self.bounds.as_deref().map(Aabb::parse).transpose()?;
-        Ok(EngineConfig { kind, resolution, limits: RayLimits { max_range: self.max_range, bounds } })
+        let allocation = if self.allocation == "full" { Allocation::Full } else { Allocation::Band };
+        Ok(EngineConfig {
+            kind,
+            resolution,
+            limits: RayLimits { max_range: self.max_range, bounds },
+            mrf: MrfParams { prior: self.prior, iterations: self.iterations, allocation },
+        })
     }
 }
 
@@ -110,6 +125,9 @@ pub fn build_map(
         bar.inc(1);
     }
     bar.finish_and_clear();
+    let t = Instant::now();
+    engine.finish()?;
+    integrate_time += t.elapsed();
     Ok(BuildReport { map: engine.map(), frames: indices.len(), integrate_time })
 }
 

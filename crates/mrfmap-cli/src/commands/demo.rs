@@ -44,7 +44,7 @@ pub fn run(a: Args) -> Result<()> {
     let indices: Vec<usize> = (0..dataset.len()).collect();
     println!("engine     time     voxels  occupied  on a true surface  files");
     for &kind in EngineKind::ALL {
-        let config = EngineConfig { kind, resolution: RESOLUTION, limits: Default::default() };
+        let config = EngineConfig::new(kind, RESOLUTION);
         let t = Instant::now();
         let report = super::build::build_map(&indices, &config, |i| dataset.frame(i))?;
         let elapsed = t.elapsed().as_secs_f64();

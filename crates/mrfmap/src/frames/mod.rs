@@ -13,7 +13,7 @@ use std::sync::Arc;
 
 pub use camera::Camera;
 pub use depth::DepthImage;
-pub use noise::{NoiseModel, PatchModel, Poly, STD_FLOOR};
+pub use noise::{NoiseModel, PatchModel, Poly, STD_FLOOR, erfc, normal_mass};
 pub use pose::{Pose, look_at, pose_from_tum, pose_to_tum};
 
 /// One depth reading ready for integration.

@@ -7,13 +7,17 @@
 //! - [`LogOddsEngine`]: OctoMap's occupancy grid update (ALGORITHMS.md 5.1), the baseline
 //!   and the fast everyday mode; also the CRM paper's ramp inverse sensor model
 //!   ([`SensorModel`]).
+//! - [`MrfEngine`]: MRFMap's ray Markov random field with loopy belief propagation over
+//!   keyframes (ALGORITHMS.md 5.3); keyframes can be added, removed and re-posed.
 
 mod logodds;
+mod mrf;
 
 use std::fmt;
 use std::str::FromStr;
 
 pub use logodds::{LogOddsEngine, LogOddsParams, SensorModel};
+pub use mrf::{Allocation, KeyframeId, MU_EPS, MrfEngine, MrfParams, ray_messages};
 
 use crate::error::{Error, Result};
 use crate::frames::Frame;
@@ -28,6 +32,11 @@ pub trait Engine: Send {
     fn resolution(&self) -> f64;
     /// Adds one frame's evidence.
     fn integrate(&mut self, frame: &Frame) -> Result<()>;
+    /// Runs any inference deferred until all frames are in (the MRF's iterations); online
+    /// engines have nothing to do.
+    fn finish(&mut self) -> Result<()> {
+        Ok(())
+    }
     /// The current map: occupancy (and variance where the engine has one) per voxel.
     fn map(&self) -> Map;
 }
@@ -37,16 +46,19 @@ pub trait Engine: Send {
 pub enum EngineKind {
     /// [`LogOddsEngine`].
     LogOdds,
+    /// [`MrfEngine`] with default [`MrfParams`].
+    Mrf,
 }
 
 impl EngineKind {
     /// All engines, in the order the demo and reports use.
-    pub const ALL: &[EngineKind] = &[EngineKind::LogOdds];
+    pub const ALL: &[EngineKind] = &[EngineKind::LogOdds, EngineKind::Mrf];
 
     /// The name used on the command line and in map files.
     pub fn name(self) -> &'static str {
         match self {
             EngineKind::LogOdds => "logodds",
+            EngineKind::Mrf => "mrf",
         }
     }
 }
@@ -77,15 +89,24 @@ pub struct EngineConfig {
     pub resolution: f64,
     /// Max range and bounding box applied to every ray.
     pub limits: RayLimits,
+    /// Parameters of the MRF engine (ignored by the others).
+    pub mrf: MrfParams,
 }
 
-/// Builds the engine `config` asks for, with its default parameters.
+impl EngineConfig {
+    /// `kind` at `resolution` with no ray limits and default engine parameters.
+    pub fn new(kind: EngineKind, resolution: f64) -> Self {
+        EngineConfig { kind, resolution, limits: RayLimits::default(), mrf: MrfParams::default() }
+    }
+}
+
+/// Builds the engine `config` asks for.
 ///
 /// ```
 /// use mrfmap::inference::{EngineConfig, EngineKind, new_engine};
-/// let engine = new_engine(&EngineConfig { kind: EngineKind::LogOdds, resolution: 0.05, limits: Default::default() }).unwrap();
-/// assert_eq!(engine.name(), "logodds");
-/// assert!(new_engine(&EngineConfig { kind: EngineKind::LogOdds, resolution: -1.0, limits: Default::default() }).is_err());
+/// let config = EngineConfig::new(EngineKind::LogOdds, 0.05);
+/// assert_eq!(new_engine(&config).unwrap().name(), "logodds");
+/// assert!(new_engine(&EngineConfig { resolution: -1.0, ..config }).is_err());
 /// ```
 pub fn new_engine(config: &EngineConfig) -> Result<Box<dyn Engine>> {
     config.limits.validate()?;
@@ -93,5 +114,6 @@ pub fn new_engine(config: &EngineConfig) -> Result<Box<dyn Engine>> {
         EngineKind::LogOdds => {
             Box::new(LogOddsEngine::new(config.resolution, config.limits, LogOddsParams::default())?)
         }
+        EngineKind::Mrf => Box::new(MrfEngine::new(config.resolution, config.limits, config.mrf)?),
     })
 }

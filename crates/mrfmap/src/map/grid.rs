@@ -186,6 +186,21 @@ impl<V: Copy + Default> Grid<V> {
         self.brick_or_insert(key.brick()).get_or_insert(key.slot(), init)
     }
 
+    /// Mutable value of an allocated voxel.
+    #[inline]
+    pub fn get_mut(&mut self, key: VoxelKey) -> Option<&mut V> {
+        let brick = self.bricks.get_mut(&key.brick())?;
+        let slot = key.slot();
+        mask_has(&brick.mask, slot).then(|| &mut brick.values[slot])
+    }
+
+    /// Drops whole bricks (absent ones are ignored).
+    pub fn remove_bricks(&mut self, keys: &[BrickKey]) {
+        for k in keys {
+            self.bricks.remove(k);
+        }
+    }
+
     /// Sets a voxel's value, allocating it.
     pub fn insert(&mut self, key: VoxelKey, value: V) {
         *self.get_or_insert(key, value) = value;

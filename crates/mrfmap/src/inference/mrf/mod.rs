@@ -1,0 +1,495 @@
+//! The MRFMap engine: every depth pixel of every keyframe is a ray factor in a Markov random
+//! field over binary voxel occupancies; loopy sum-product belief propagation over all
+//! keyframes gives each voxel's marginal (MRFMap secs. III-IV, ALGORITHMS.md 5.3).
+//!
+//! How the pieces fit:
+//! - [`ray_messages`] computes one ray factor's outgoing messages in linear time.
+//! - Each keyframe keeps, per voxel it touches, the length-weighted average of its rays'
+//!   messages (as log-odds). Each voxel keeps `S = logit(prior) + sum_k logit(msg_k)`; the
+//!   message from a voxel to keyframe `k`'s rays is the cavity `sigmoid(S - logit(msg_k))`.
+//! - One iteration traces every keyframe in turn with the current cavities and replaces its
+//!   messages in `S`. The marginal is `sigmoid(S)`.
+//! - Keyframes can be added, removed and re-posed; removal subtracts the keyframe's messages
+//!   (it does not reset the others' and `S` the way the reference code does, which would
+//!   double-count), then [`MrfEngine::run`] iterates again from where the map stands.
+//!
+//! Allocation is at brick granularity. [`Allocation::Band`] (the reference's choice, default)
+//! allocates the bricks within one voxel of each back-projected depth point, so free space
+//! far from surfaces stays unknown and rays skip it; [`Allocation::Full`] also allocates every
+//! brick a ray crosses from the camera on. Rays are truncated 3 std beyond the measurement
+//! (bias removed); the chance that the surface lies beyond that point is the ray's "beyond"
+//! term: the forward model averaged over one more voxel past the truncation.
+//!
+//! Each voxel's likelihood is the forward model averaged over the voxel's extent along the
+//! ray ([`NoiseModel::likelihood_over`]), so voxels stay informative when the sensor's noise
+//! is much smaller than a voxel. Tracing runs on all cores over fixed blocks of image rows
+//! whose partial sums are merged in a fixed order, so results do not depend on the number of
+//! threads.
+
+mod messages;
+
+use std::ops::ControlFlow;
+use std::sync::Arc;
+
+use rayon::prelude::*;
+use rustc_hash::FxHashMap;
+
+pub use messages::{MU_EPS, ray_messages};
+
+use super::Engine;
+use crate::error::{Error, Result};
+use crate::frames::{Frame, NoiseModel, Pose, default_noise_model};
+use crate::map::{BRICK_EDGE, BRICK_VOXELS, BrickKey, Grid, Map, MapVoxel, VoxelKey};
+use crate::rays::{FrameRays, PixelRay, RayLimits, for_each_crossing};
+
+/// Which bricks a keyframe allocates.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Allocation {
+    /// Bricks within one voxel of the back-projected depth points (the reference's choice).
+    Band,
+    /// Also every brick the rays cross from the camera on (free space becomes known).
+    Full,
+}
+
+/// Parameters of the MRF engine.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct MrfParams {
+    /// Prior occupancy of every voxel (the paper: 0.1).
+    pub prior: f64,
+    /// Belief-propagation iterations run by [`Engine::finish`] (the paper: 3).
+    pub iterations: usize,
+    /// Brick allocation mode.
+    pub allocation: Allocation,
+}
+
+impl Default for MrfParams {
+    fn default() -> Self {
+        MrfParams { prior: 0.1, iterations: 3, allocation: Allocation::Band }
+    }
+}
+
+/// Identifies a keyframe of an [`MrfEngine`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct KeyframeId(pub u64);
+
+struct Keyframe {
+    id: KeyframeId,
+    frame: Frame,
+    noise: Arc<NoiseModel>,
+    /// Bricks this keyframe allocated (counted in `MrfEngine::brick_refs`).
+    bricks: Vec<BrickKey>,
+    /// Log-odds of the keyframe's length-weighted average message per voxel.
+    messages: Grid<f32>,
+}
+
+/// Messages are kept away from 0 and 1 so that their log-odds stay finite.
+const MSG_EPS: f64 = 1e-6;
+
+/// Image rows per block of parallel work; fixed so results do not depend on thread count.
+const ROWS_PER_BLOCK: u32 = 8;
+
+fn logit(p: f64) -> f64 {
+    (p / (1.0 - p)).ln()
+}
+
+fn sigmoid(l: f64) -> f64 {
+    1.0 / (1.0 + (-l).exp())
+}
+
+/// MRFMap inference over keyframes.
+///
+/// ```
+/// use mrfmap::inference::{MrfEngine, MrfParams};
+/// let engine = MrfEngine::new(0.05, Default::default(), MrfParams::default()).unwrap();
+/// assert_eq!(engine.keyframe_count(), 0);
+/// ```
+pub struct MrfEngine {
+    params: MrfParams,
+    limits: RayLimits,
+    /// Per voxel `S = logit(prior) + sum_k logit(msg_k)`; allocated = the union of keyframes' bricks.
+    sums: Grid<f32>,
+    brick_refs: FxHashMap<BrickKey, u32>,
+    keyframes: Vec<Keyframe>,
+    next_id: u64,
+    default_noise: Arc<NoiseModel>,
+}
+
+impl MrfEngine {
+    /// An empty engine.
+    pub fn new(resolution: f64, limits: RayLimits, params: MrfParams) -> Result<Self> {
+        if !(params.prior > 0.0 && params.prior < 1.0) {
+            return Err(Error::Invalid(format!("MRF prior must be in (0, 1), got {}", params.prior)));
+        }
+        Ok(MrfEngine {
+            params,
+            limits,
+            sums: Grid::new(resolution)?,
+            brick_refs: FxHashMap::default(),
+            keyframes: Vec::new(),
+            next_id: 0,
+            default_noise: Arc::new(default_noise_model()),
+        })
+    }
+
+    /// Number of keyframes.
+    pub fn keyframe_count(&self) -> usize {
+        self.keyframes.len()
+    }
+
+    /// Ids of the keyframes, in the order they were added.
+    pub fn keyframe_ids(&self) -> Vec<KeyframeId> {
+        self.keyframes.iter().map(|k| k.id).collect()
+    }
+
+    /// Adds a keyframe and allocates its bricks; call [`MrfEngine::run`] to infer.
+    /// Fails on an image that does not match its camera or a non-finite pose.
+    pub fn add_keyframe(&mut self, frame: Frame) -> Result<KeyframeId> {
+        check_frame(&frame)?;
+        let noise = frame.noise.clone().unwrap_or_else(|| self.default_noise.clone());
+        noise.check_camera(&frame.camera).map_err(Error::Invalid)?;
+        let id = KeyframeId(self.next_id);
+        self.next_id += 1;
+        let mut kf = Keyframe { id, frame, noise, bricks: Vec::new(), messages: Grid::new(self.resolution())? };
+        kf.bricks = self.allocation_of(&kf);
+        self.reference_bricks(&kf.bricks);
+        self.keyframes.push(kf);
+        Ok(id)
+    }
+
+    /// Removes a keyframe: its messages leave the sums and the bricks only it allocated are
+    /// freed. Call [`MrfEngine::run`] to let the other keyframes re-converge.
+    pub fn remove_keyframe(&mut self, id: KeyframeId) -> Result<()> {
+        let i = self.index_of(id)?;
+        self.withdraw_messages(i);
+        let kf = self.keyframes.remove(i);
+        self.release_bricks(&kf.bricks);
+        Ok(())
+    }
+
+    /// Moves a keyframe (e.g. after a loop closure): its messages are withdrawn and its bricks
+    /// re-allocated for the new pose. Call [`MrfEngine::run`] to re-infer.
+    pub fn set_pose(&mut self, id: KeyframeId, pose: Pose) -> Result<()> {
+        let i = self.index_of(id)?;
+        let mut frame = self.keyframes[i].frame.clone();
+        frame.pose = pose;
+        check_frame(&frame)?;
+        self.withdraw_messages(i);
+        let old = std::mem::take(&mut self.keyframes[i].bricks);
+        self.keyframes[i].frame = frame;
+        let new = self.allocation_of(&self.keyframes[i]);
+        self.reference_bricks(&new);
+        self.keyframes[i].bricks = new;
+        self.release_bricks(&old);
+        Ok(())
+    }
+
+    /// Runs `iterations` rounds of belief propagation over all keyframes.
+    pub fn run(&mut self, iterations: usize) {
+        for _ in 0..iterations {
+            for i in 0..self.keyframes.len() {
+                self.update_keyframe(i);
+            }
+        }
+    }
+
+    /// Marginal occupancy of a voxel, `None` if unallocated.
+    pub fn marginal(&self, key: VoxelKey) -> Option<f64> {
+        self.sums.get(key).map(|s| sigmoid(*s as f64))
+    }
+
+    /// Marginal occupancy at a world point, `None` where nothing is allocated.
+    pub fn marginal_at(&self, p: [f64; 3]) -> Option<f64> {
+        self.marginal(VoxelKey::from_point(p, self.resolution()))
+    }
+
+    /// All allocated voxels with their marginals.
+    pub fn marginals(&self) -> impl Iterator<Item = (VoxelKey, f64)> + '_ {
+        self.sums.iter().map(|(k, s)| (k, sigmoid(*s as f64)))
+    }
+
+    fn index_of(&self, id: KeyframeId) -> Result<usize> {
+        self.keyframes.iter().position(|k| k.id == id).ok_or_else(|| Error::Invalid(format!("no keyframe {id:?}")))
+    }
+
+    /// Takes keyframe `i`'s messages out of the sums and forgets them.
+    fn withdraw_messages(&mut self, i: usize) {
+        let kf = &mut self.keyframes[i];
+        for (key, m) in kf.messages.iter() {
+            if let Some(s) = self.sums.get_mut(key) {
+                *s -= *m;
+            }
+        }
+        kf.messages = Grid::new(self.sums.resolution()).expect("valid resolution");
+    }
+
+    fn reference_bricks(&mut self, bricks: &[BrickKey]) {
+        let prior = logit(self.params.prior) as f32;
+        for &b in bricks {
+            let refs = self.brick_refs.entry(b).or_insert(0);
+            *refs += 1;
+            if *refs == 1 {
+                let brick = self.sums.brick_or_insert(b);
+                for slot in 0..BRICK_VOXELS {
+                    brick.get_or_insert(slot, prior);
+                }
+            }
+        }
+    }
+
+    /// Drops a reference to each brick; bricks nobody references leave the map, with every
+    /// keyframe's messages in them (as if they had never been allocated).
+    fn release_bricks(&mut self, bricks: &[BrickKey]) {
+        let mut freed = Vec::new();
+        for b in bricks {
+            if let Some(refs) = self.brick_refs.get_mut(b) {
+                *refs -= 1;
+                if *refs == 0 {
+                    self.brick_refs.remove(b);
+                    freed.push(*b);
+                }
+            }
+        }
+        if freed.is_empty() {
+            return;
+        }
+        self.sums.remove_bricks(&freed);
+        for kf in &mut self.keyframes {
+            kf.messages.remove_bricks(&freed);
+        }
+    }
+
+    /// The bricks keyframe `kf` allocates.
+    fn allocation_of(&self, kf: &Keyframe) -> Vec<BrickKey> {
+        let r = self.resolution();
+        let rays = FrameRays::new(&kf.frame);
+        let full = self.params.allocation == Allocation::Full;
+        let limits = self.limits;
+        let mut bricks: Vec<BrickKey> = (0..rays.rows())
+            .into_par_iter()
+            .fold(Vec::new, |mut out: Vec<BrickKey>, v| {
+                for ray in rays.row(v) {
+                    let Some(seg) = ray_segment(&ray, &kf.noise, &limits) else { continue };
+                    if seg.hits_surface {
+                        // Bricks of the voxels within one voxel of the depth point.
+                        let p = FrameRays::endpoint(&ray);
+                        let k = VoxelKey::from_point(p, r);
+                        for dz in -1..=1 {
+                            for dy in -1..=1 {
+                                for dx in -1..=1 {
+                                    out.push(VoxelKey([k.0[0] + dx, k.0[1] + dy, k.0[2] + dz]).brick());
+                                }
+                            }
+                        }
+                    }
+                    if full {
+                        let edge = r * BRICK_EDGE as f64;
+                        for_each_crossing(ray.origin, ray.dir, seg.start, seg.end, edge, |c| {
+                            out.push(BrickKey(c.key.0));
+                            ControlFlow::Continue(())
+                        });
+                    }
+                }
+                out.sort_unstable();
+                out.dedup();
+                out
+            })
+            .reduce(Vec::new, |mut a, b| {
+                a.extend(b);
+                a
+            });
+        bricks.sort_unstable();
+        bricks.dedup();
+        bricks
+    }
+
+    /// Traces keyframe `i` with the current cavities and replaces its messages in the sums.
+    fn update_keyframe(&mut self, i: usize) {
+        let new = self.trace_keyframe(i);
+        let kf = &mut self.keyframes[i];
+        // Withdraw the old messages, then add the new ones.
+        for (key, m) in kf.messages.iter() {
+            if let Some(s) = self.sums.get_mut(key) {
+                *s -= *m;
+            }
+        }
+        let mut messages = Grid::new(self.sums.resolution()).expect("valid resolution");
+        for (key, m) in new {
+            if let Some(s) = self.sums.get_mut(key) {
+                *s += m;
+                messages.insert(key, m);
+            }
+        }
+        kf.messages = messages;
+    }
+
+    /// The new length-weighted average messages (log-odds) of keyframe `i`.
+    fn trace_keyframe(&self, i: usize) -> Vec<(VoxelKey, f32)> {
+        let kf = &self.keyframes[i];
+        let rays = FrameRays::new(&kf.frame);
+        let blocks: Vec<u32> = (0..rays.rows().div_ceil(ROWS_PER_BLOCK)).collect();
+        // Per block: voxel -> (sum of length * message, sum of length).
+        let partials: Vec<FxHashMap<VoxelKey, (f64, f64)>> = blocks
+            .par_iter()
+            .map(|&b| {
+                let mut acc = FxHashMap::default();
+                let mut scratch = RayScratch::default();
+                let rows = b * ROWS_PER_BLOCK..((b + 1) * ROWS_PER_BLOCK).min(rays.rows());
+                for v in rows {
+                    for ray in rays.row(v) {
+                        self.trace_ray(kf, &ray, &mut scratch, &mut acc);
+                    }
+                }
+                acc
+            })
+            .collect();
+        let mut total: FxHashMap<VoxelKey, (f64, f64)> = FxHashMap::default();
+        for part in partials {
+            for (k, (wm, w)) in part {
+                let e = total.entry(k).or_insert((0.0, 0.0));
+                e.0 += wm;
+                e.1 += w;
+            }
+        }
+        let mut out: Vec<(VoxelKey, f32)> = total
+            .into_iter()
+            .filter(|(_, (_, w))| *w > 0.0)
+            .map(|(k, (wm, w))| (k, logit((wm / w).clamp(MSG_EPS, 1.0 - MSG_EPS)) as f32))
+            .collect();
+        out.sort_unstable_by_key(|(k, _)| *k);
+        out
+    }
+
+    /// One ray: gather the allocated voxels it crosses, their cavities and likelihoods, and
+    /// add its outgoing messages to `acc`.
+    fn trace_ray(
+        &self,
+        kf: &Keyframe,
+        ray: &PixelRay,
+        scratch: &mut RayScratch,
+        acc: &mut FxHashMap<VoxelKey, (f64, f64)>,
+    ) {
+        let Some(seg) = ray_segment(ray, &kf.noise, &self.limits) else { return };
+        let r = self.resolution();
+        let measured = ray.range * ray.cz;
+        scratch.clear();
+        let edge = r * BRICK_EDGE as f64;
+        for_each_crossing(ray.origin, ray.dir, seg.start, seg.end, edge, |b| {
+            let key = BrickKey(b.key.0);
+            let (Some(sums), msgs) = (self.sums.brick(key), kf.messages.brick(key)) else {
+                return ControlFlow::Continue(()); // unallocated: skipped, as the reference does
+            };
+            for_each_crossing(ray.origin, ray.dir, b.s_in, b.s_out, r, |c| {
+                let (s, m) = if c.key.brick() == key {
+                    (sums.get(c.key.slot()), msgs.and_then(|g| g.get(c.key.slot())))
+                } else {
+                    (self.sums.get(c.key), kf.messages.get(c.key)) // rounding at a brick face
+                };
+                if let Some(s) = s {
+                    let cavity = sigmoid((*s - m.copied().unwrap_or(0.0)) as f64);
+                    let nu = kf.noise.likelihood_over(ray.u, ray.v, c.s_in * ray.cz, c.s_out * ray.cz, measured);
+                    scratch.push(c.key, c.length(), cavity, nu);
+                }
+                ControlFlow::Continue(())
+            });
+            ControlFlow::Continue(())
+        });
+        if scratch.keys.is_empty() {
+            return;
+        }
+        let z_end = seg.end * ray.cz;
+        let beyond = if seg.hits_surface {
+            kf.noise.likelihood_over(ray.u, ray.v, z_end, z_end + r * ray.cz, measured)
+        } else {
+            0.0
+        };
+        ray_messages(&scratch.mu, &scratch.nu, beyond, &mut scratch.out);
+        for (j, key) in scratch.keys.iter().enumerate() {
+            let e = acc.entry(*key).or_insert((0.0, 0.0));
+            e.0 += scratch.length[j] * scratch.out[j];
+            e.1 += scratch.length[j];
+        }
+    }
+}
+
+/// The part of a ray the MRF uses: from the camera (or the bounds) to 3 std beyond the
+/// bias-corrected measurement (or the max range / bounds).
+fn ray_segment(ray: &PixelRay, noise: &NoiseModel, limits: &RayLimits) -> Option<crate::rays::Segment> {
+    let z = ray.range * ray.cz;
+    let (bias, std) = noise.bias_std(ray.u, ray.v, z);
+    let z_end = (z - bias + 3.0 * std).max(z * 0.5);
+    let extra = z_end / ray.cz - ray.range;
+    limits.segment(ray, extra)
+}
+
+fn check_frame(frame: &Frame) -> Result<()> {
+    let (w, h) = (frame.depth.width(), frame.depth.height());
+    if (w, h) != (frame.camera.width, frame.camera.height) {
+        return Err(Error::Invalid(format!(
+            "keyframe {}: depth image is {w}x{h} but the camera is {}x{}",
+            frame.index, frame.camera.width, frame.camera.height
+        )));
+    }
+    let t = frame.pose.translation.vector;
+    let q = frame.pose.rotation.quaternion();
+    if [t.x, t.y, t.z, q.i, q.j, q.k, q.w].iter().any(|v| !v.is_finite()) {
+        return Err(Error::Invalid(format!("keyframe {}: pose has a NaN or infinite value", frame.index)));
+    }
+    Ok(())
+}
+
+/// Per-ray buffers, reused across rays of a block.
+#[derive(Default)]
+struct RayScratch {
+    keys: Vec<VoxelKey>,
+    length: Vec<f64>,
+    mu: Vec<f64>,
+    nu: Vec<f64>,
+    out: Vec<f64>,
+}
+
+impl RayScratch {
+    fn clear(&mut self) {
+        self.keys.clear();
+        self.length.clear();
+        self.mu.clear();
+        self.nu.clear();
+    }
+
+    fn push(&mut self, key: VoxelKey, length: f64, mu: f64, nu: f64) {
+        self.keys.push(key);
+        self.length.push(length);
+        self.mu.push(mu);
+        self.nu.push(nu);
+    }
+}
+
+impl Engine for MrfEngine {
+    fn name(&self) -> &'static str {
+        "mrf"
+    }
+
+    fn resolution(&self) -> f64 {
+        self.sums.resolution()
+    }
+
+    /// Adds the frame as a keyframe (inference runs in [`Engine::finish`]).
+    fn integrate(&mut self, frame: &Frame) -> Result<()> {
+        self.add_keyframe(frame.clone()).map(|_| ())
+    }
+
+    fn finish(&mut self) -> Result<()> {
+        self.run(self.params.iterations);
+        Ok(())
+    }
+
+    fn map(&self) -> Map {
+        let mut map = Map::new(self.name(), self.resolution()).expect("valid resolution");
+        map.voxels = self.sums.map(|s| MapVoxel { occupancy: sigmoid(*s as f64) as f32, variance: 0.0 });
+        let p = self.params;
+        map.params.insert("prior".into(), p.prior.to_string());
+        map.params.insert("iterations".into(), p.iterations.to_string());
+        map.params.insert("allocation".into(), format!("{:?}", p.allocation).to_lowercase());
+        map.params.insert("keyframes".into(), self.keyframes.len().to_string());
+        map
+    }
+}

@@ -124,6 +124,25 @@ fn simulate_build_info_export() {
     assert!(face > 0.5, "box face occupancy {face}");
     assert!(loaded.occupancy_at([-0.6, 0.02, 0.3]).is_some_and(|p| p < 0.5), "free space in front of the face");
 
+    // The MRF engine through the CLI, with automatic keyframe selection.
+    let mrf = dir.join("mrf.mrfmap");
+    let o = run(&[
+        "build",
+        s(&data),
+        "-o",
+        s(&mrf),
+        "--resolution",
+        "0.05",
+        "--engine",
+        "mrf",
+        "--keyframes",
+        "auto",
+        "-q",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let o = run(&["info", s(&mrf)]);
+    assert!(stdout(&o).contains("engine:      mrf") && stdout(&o).contains("keyframes = 4"), "{}", stdout(&o));
+
     // Bounds, frames, max range and threads are accepted.
     let o = run(&[
         "build",

@@ -193,3 +193,25 @@ fn bad_keyframes_are_refused() {
     e.run(2);
     assert!(e.marginals().all(|(_, p)| p.is_finite()));
 }
+
+#[test]
+fn auto_keyframe_selection_skips_frames_near_a_keyframe() {
+    use mrfmap::inference::KeyframeSelection;
+    let s = scene(&format!("{SMALL_CAMERA}{BOX_SCENE}"));
+    let base = s.views[0];
+    let shifted = |dx: f64, yaw: f64| Pose::new([dx, 0.0, 0.0].into(), [0.0, 0.0, yaw].into()) * base;
+    let poses = [base, shifted(0.1, 0.0), shifted(0.3, 0.0), shifted(0.0, 0.3), shifted(0.05, 0.05)];
+    let fr = frames(&s, &poses, None);
+    let params = MrfParams { keyframes: KeyframeSelection::AUTO, ..Default::default() };
+    let mut e = MrfEngine::new(0.05, Default::default(), params).unwrap();
+    for f in &fr {
+        e.integrate(f).unwrap();
+    }
+    // Kept: the first, the one 0.3 m away, the one turned 0.3 rad; skipped: 0.1 m and (0.05 m, 0.05 rad).
+    assert_eq!(e.keyframe_count(), 3);
+    let mut all = MrfEngine::new(0.05, Default::default(), MrfParams::default()).unwrap();
+    for f in &fr {
+        all.integrate(f).unwrap();
+    }
+    assert_eq!(all.keyframe_count(), 5);
+}

@@ -6,7 +6,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use mrfmap::frames::Frame;
-use mrfmap::inference::{Allocation, EngineConfig, EngineKind, MrfParams, new_engine};
+use mrfmap::inference::{Allocation, EngineConfig, EngineKind, KeyframeSelection, MrfParams, new_engine};
 use mrfmap::map::Map;
 use mrfmap::rays::{Aabb, RayLimits};
 use mrfmap::source::Dataset;
@@ -32,6 +32,10 @@ pub struct MapOptions {
     /// MRF: allocate bricks around depth points only (band) or along whole rays (full).
     #[arg(long, default_value = "band", value_parser = ["band", "full"])]
     pub allocation: String,
+    /// MRF: every frame is a keyframe (all), or only frames 0.2 m / 0.2 rad from every
+    /// keyframe so far (auto).
+    #[arg(long, default_value = "all", value_parser = ["all", "auto"])]
+    pub keyframes: String,
 }
 
 impl MapOptions {
@@ -52,7 +56,12 @@ impl MapOptions {
             kind,
             resolution,
             limits: RayLimits { max_range: self.max_range, bounds },
-            mrf: MrfParams { prior: self.prior, iterations: self.iterations, allocation },
+            mrf: MrfParams {
+                prior: self.prior,
+                iterations: self.iterations,
+                allocation,
+                keyframes: if self.keyframes == "auto" { KeyframeSelection::AUTO } else { KeyframeSelection::All },
+            },
         })
     }
 }

@@ -17,7 +17,7 @@ use std::fmt;
 use std::str::FromStr;
 
 pub use logodds::{LogOddsEngine, LogOddsParams, SensorModel};
-pub use mrf::{Allocation, KeyframeId, MU_EPS, MrfEngine, MrfParams, ray_messages};
+pub use mrf::{Allocation, KeyframeId, KeyframeSelection, MU_EPS, MrfEngine, MrfParams, ray_messages};
 
 use crate::error::{Error, Result};
 use crate::frames::Frame;

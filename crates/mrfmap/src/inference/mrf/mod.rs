@@ -51,6 +51,26 @@ pub enum Allocation {
     Full,
 }
 
+/// Which integrated frames become keyframes (MRFMap sec. V-A.2).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum KeyframeSelection {
+    /// Every frame (the default for datasets).
+    All,
+    /// A frame whose translation or rotation angle from *every* existing keyframe exceeds
+    /// these thresholds (metres, radians; defaults 0.2 and 0.2).
+    Auto {
+        /// Translation threshold (m).
+        translation: f64,
+        /// Rotation threshold (rad).
+        rotation: f64,
+    },
+}
+
+impl KeyframeSelection {
+    /// `Auto` with the default thresholds.
+    pub const AUTO: KeyframeSelection = KeyframeSelection::Auto { translation: 0.2, rotation: 0.2 };
+}
+
 /// Parameters of the MRF engine.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct MrfParams {
@@ -60,11 +80,13 @@ pub struct MrfParams {
     pub iterations: usize,
     /// Brick allocation mode.
     pub allocation: Allocation,
+    /// Which frames [`Engine::integrate`] turns into keyframes.
+    pub keyframes: KeyframeSelection,
 }
 
 impl Default for MrfParams {
     fn default() -> Self {
-        MrfParams { prior: 0.1, iterations: 3, allocation: Allocation::Band }
+        MrfParams { prior: 0.1, iterations: 3, allocation: Allocation::Band, keyframes: KeyframeSelection::All }
     }
 }
 
@@ -207,6 +229,17 @@ impl MrfEngine {
         self.sums.iter().map(|(k, s)| (k, sigmoid(*s as f64)))
     }
 
+    /// Would a frame at `pose` be a new keyframe under the engine's [`KeyframeSelection`]?
+    pub fn is_new_keyframe(&self, pose: &Pose) -> bool {
+        match self.params.keyframes {
+            KeyframeSelection::All => true,
+            KeyframeSelection::Auto { translation, rotation } => self.keyframes.iter().all(|k| {
+                let d = k.frame.pose.inverse() * pose;
+                d.translation.vector.norm() > translation || d.rotation.angle() > rotation
+            }),
+        }
+    }
+
     fn index_of(&self, id: KeyframeId) -> Result<usize> {
         self.keyframes.iter().position(|k| k.id == id).ok_or_else(|| Error::Invalid(format!("no keyframe {id:?}")))
     }
@@ -224,6 +257,7 @@ impl MrfEngine {
 
     fn reference_bricks(&mut self, bricks: &[BrickKey]) {
         let prior = logit(self.params.prior) as f32;
+        // New bricks start at the prior; a brick already allocated keeps its sums.
         for &b in bricks {
             let refs = self.brick_refs.entry(b).or_insert(0);
             *refs += 1;
@@ -472,8 +506,13 @@ impl Engine for MrfEngine {
         self.sums.resolution()
     }
 
-    /// Adds the frame as a keyframe (inference runs in [`Engine::finish`]).
+    /// Adds the frame as a keyframe if the [`KeyframeSelection`] takes it (inference runs in
+    /// [`Engine::finish`]).
     fn integrate(&mut self, frame: &Frame) -> Result<()> {
+        if !self.is_new_keyframe(&frame.pose) {
+            tracing::debug!("frame {} is close to an existing keyframe; skipped", frame.index);
+            return Ok(());
+        }
         self.add_keyframe(frame.clone()).map(|_| ())
     }
 
@@ -490,6 +529,9 @@ impl Engine for MrfEngine {
         map.params.insert("iterations".into(), p.iterations.to_string());
         map.params.insert("allocation".into(), format!("{:?}", p.allocation).to_lowercase());
         map.params.insert("keyframes".into(), self.keyframes.len().to_string());
+        if let KeyframeSelection::Auto { translation, rotation } = p.keyframes {
+            map.params.insert("keyframe_selection".into(), format!("auto ({translation} m, {rotation} rad)"));
+        }
         map
     }
 }

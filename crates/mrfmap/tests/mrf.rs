@@ -215,3 +215,31 @@ fn auto_keyframe_selection_skips_frames_near_a_keyframe() {
     }
     assert_eq!(all.keyframe_count(), 5);
 }
+
+#[test]
+fn full_allocation_maps_free_space_band_allocation_leaves_it_unknown() {
+    use mrfmap::inference::Allocation;
+    let s = scene(&format!("{SMALL_CAMERA}{BOX_SCENE}"));
+    let fr = frames(&s, &s.views, None);
+    let build = |allocation| {
+        let params = MrfParams { allocation, ..Default::default() };
+        let mut e = MrfEngine::new(0.05, Default::default(), params).unwrap();
+        for f in &fr {
+            e.add_keyframe(f.clone()).unwrap();
+        }
+        e.run(3);
+        e
+    };
+    let band = build(Allocation::Band);
+    let full = build(Allocation::Full);
+    // Half-way between the first camera (2.0, 0.0, 1.3) and the box: free space.
+    let p = [1.2, 0.0, 0.9];
+    assert_eq!(band.marginal_at(p), None, "band allocation leaves free space unknown");
+    let q = full.marginal_at(p).expect("full allocation maps it");
+    assert!(q < 0.05, "free space marginal {q}");
+    // Both agree that the box top is occupied.
+    for e in [&band, &full] {
+        assert!(e.marginal_at([0.01, 0.01, 0.59]).unwrap() > 0.5);
+    }
+    assert!(full.marginals().count() > band.marginals().count());
+}

@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Result;
-use mrfmap::inference::{EngineConfig, EngineKind, new_engine};
+use mrfmap::inference::{EngineConfig, EngineKind, MrfEngine, MrfParams, new_engine};
 use mrfmap::source::Dataset;
 
 #[derive(clap::Args)]
@@ -21,6 +21,29 @@ pub struct Args {
     /// Builds per resolution; the fastest is reported (least disturbed by other load).
     #[arg(long, default_value_t = 3)]
     repeat: u32,
+    /// MRF only: also time adding the last frame as a keyframe to a map of all the others
+    /// (already inferred) and running 3 iterations over all keyframes.
+    #[arg(long)]
+    incremental: bool,
+}
+
+/// Time to add the last frame to an inferred MRF of the others and run 3 iterations.
+fn incremental_mrf(frames: &[mrfmap::frames::Frame], resolution: f64, repeat: u32) -> Result<f64> {
+    let (last, rest) = frames.split_last().ok_or_else(|| anyhow::anyhow!("no frames"))?;
+    let mut engine = MrfEngine::new(resolution, Default::default(), MrfParams::default())?;
+    for f in rest {
+        engine.add_keyframe(f.clone())?;
+    }
+    engine.run(3);
+    let mut best = f64::INFINITY;
+    for _ in 0..repeat.max(1) {
+        let t = Instant::now();
+        let id = engine.add_keyframe(last.clone())?;
+        engine.run(3);
+        best = best.min(t.elapsed().as_secs_f64());
+        engine.remove_keyframe(id)?;
+    }
+    Ok(best)
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -34,7 +57,13 @@ pub fn run(a: Args) -> Result<()> {
         rayon::current_num_threads(),
         a.repeat
     );
-    println!("resolution\tms_per_frame\toccupied\tvoxels\tmemory_mib");
+    if a.incremental && kind != EngineKind::Mrf {
+        anyhow::bail!("--incremental is for --engine mrf");
+    }
+    println!(
+        "resolution\tms_per_frame\toccupied\tvoxels\tmemory_mib{}",
+        if a.incremental { "\tincremental_ms" } else { "" }
+    );
     for &resolution in &a.resolutions {
         let mut best = f64::INFINITY;
         let mut last = None;
@@ -49,8 +78,13 @@ pub fn run(a: Args) -> Result<()> {
             last = Some(engine.map());
         }
         let map = last.expect("at least one run");
+        let incremental = if a.incremental {
+            format!("\t{:.0}", incremental_mrf(&frames, resolution, a.repeat)? * 1e3)
+        } else {
+            String::new()
+        };
         println!(
-            "{resolution}\t{:.2}\t{}\t{}\t{:.1}",
+            "{resolution}\t{:.2}\t{}\t{}\t{:.1}{incremental}",
             best * 1e3 / frames.len() as f64,
             map.occupied_count(),
             map.voxels.len(),

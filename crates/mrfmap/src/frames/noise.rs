@@ -16,6 +16,9 @@ use crate::frames::Camera;
 /// dips to zero or below never yields a degenerate Gaussian.
 pub const STD_FLOOR: f64 = 1e-4;
 
+/// Likelihoods of surfaces more than this many standard deviations from the measurement are 0.
+const TAIL_CUTOFF: f64 = 10.0;
+
 /// A polynomial `c0 + c1 z + c2 z^2` (ascending coefficients, unused ones zero).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct Poly(pub [f64; 3]);
@@ -207,8 +210,13 @@ impl NoiseModel {
         let sigma = s.eval(0.5 * (z0 + z1)).max(STD_FLOOR);
         let w0 = z0 + b.eval(z0);
         let w1 = z1 + b.eval(z1);
+        let (a, b) = ((w0 - measured) / sigma, (w1 - measured) / sigma);
+        if a > TAIL_CUTOFF || b < -TAIL_CUTOFF {
+            // Over 10 std away: the mass (< 1e-23) is zero next to any voxel near the surface.
+            return 0.0;
+        }
         if w1 - w0 > 1e-3 * sigma {
-            normal_mass((w0 - measured) / sigma, (w1 - measured) / sigma) / (w1 - w0)
+            normal_mass(a, b) / (w1 - w0)
         } else {
             let d = (measured - 0.5 * (w0 + w1)) / sigma;
             (-0.5 * d * d).exp() / (sigma * (2.0 * std::f64::consts::PI).sqrt())

@@ -339,21 +339,14 @@ impl MrfEngine {
     /// Traces keyframe `i` with the current cavities and replaces its messages in the sums.
     fn update_keyframe(&mut self, i: usize) {
         let new = self.trace_keyframe(i);
-        let kf = &mut self.keyframes[i];
-        // Withdraw the old messages, then add the new ones.
-        for (key, m) in kf.messages.iter() {
-            if let Some(s) = self.sums.get_mut(key) {
-                *s -= *m;
-            }
-        }
-        let mut messages = Grid::new(self.sums.resolution()).expect("valid resolution");
+        self.withdraw_messages(i);
+        let messages = &mut self.keyframes[i].messages;
         for (key, m) in new {
             if let Some(s) = self.sums.get_mut(key) {
                 *s += m;
                 messages.insert(key, m);
             }
         }
-        kf.messages = messages;
     }
 
     /// The new length-weighted average messages (log-odds) of keyframe `i`.

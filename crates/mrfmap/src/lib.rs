@@ -26,6 +26,8 @@
 //! # Ok::<(), mrfmap::Error>(())
 //! ```
 #![warn(missing_docs)]
+// `!(x > 0.0)` also rejects NaN, which is the point wherever it is used to validate input.
+#![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 pub mod atomic_file;
 mod error;

@@ -76,10 +76,10 @@ impl Camera {
         if self.depth_scale <= 0.0 {
             return Err(format!("depth_scale must be positive, got {}", self.depth_scale));
         }
-        if let (Some(a), Some(b)) = (self.min_depth, self.max_depth) {
-            if !(a >= 0.0 && b > a) {
-                return Err(format!("need 0 <= min_depth < max_depth, got {a} and {b}"));
-            }
+        if let (Some(a), Some(b)) = (self.min_depth, self.max_depth)
+            && !(a >= 0.0 && b > a)
+        {
+            return Err(format!("need 0 <= min_depth < max_depth, got {a} and {b}"));
         }
         Ok(())
     }

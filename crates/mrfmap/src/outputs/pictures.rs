@@ -163,7 +163,8 @@ pub fn write_truth_slices(map: &Map, scene: &Scene, z: f64, dir: &Path) -> Resul
     let kz = (z / r).floor() as i32;
     let (w, h) = ((hi.0[0] - lo.0[0] + 1) as u32, (hi.0[1] - lo.0[1] + 1) as u32);
     std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
-    let quantities: [(&str, fn(&VoxelTruth) -> f64); 4] = [
+    type Quantity = (&'static str, fn(&VoxelTruth) -> f64);
+    let quantities: [Quantity; 4] = [
         ("mean", |t| t.mean),
         ("sigma", |t| t.sigma * 2.0),
         ("abs_error", |t| t.error().abs()),

@@ -158,10 +158,10 @@ pub struct Segment {
 impl RayLimits {
     /// Checks the limits themselves.
     pub fn validate(&self) -> crate::Result<()> {
-        if let Some(m) = self.max_range {
-            if !(m > 0.0) {
-                return Err(crate::Error::Invalid(format!("max range must be positive, got {m}")));
-            }
+        if let Some(m) = self.max_range
+            && !(m > 0.0)
+        {
+            return Err(crate::Error::Invalid(format!("max range must be positive, got {m}")));
         }
         Ok(())
     }

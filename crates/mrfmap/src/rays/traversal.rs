@@ -260,8 +260,8 @@ mod tests {
             let mut origin = [0; 3].map(|_| (rng.next_u64() % 40) as f64 * r - 2.0);
             // Keep 0-3 coordinates off the lattice: corner, edge, face or interior starts.
             let keep_on = (rng.next_u64() % 4) as usize;
-            for a in keep_on..3 {
-                origin[a] += rng.range(0.0, r);
+            for o in &mut origin[keep_on..] {
+                *o += rng.range(0.0, r);
             }
             let mut dir = unit(&mut rng);
             if rng.uniform() < 0.4 {
@@ -296,9 +296,9 @@ mod tests {
         // 10 km at 5 cm: count matches the sum of per-axis boundary crossings.
         let origin = [0.013, -0.021, 0.007];
         let dir = {
-            let v = [0.3, -0.5, 0.81];
-            let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]) as f64;
-            v.map(|x: f64| x / n.sqrt())
+            let v: [f64; 3] = [0.3, -0.5, 0.81];
+            let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+            v.map(|x| x / n)
         };
         let s1 = 10_000.0;
         let r = 0.05;

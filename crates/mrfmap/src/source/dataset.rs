@@ -130,7 +130,7 @@ impl Dataset {
         &self.camera
     }
 
-    /// The dataset's noise model (from `noise.toml`, or set with [`Dataset::set_noise`]).
+    /// The dataset's noise model (from `noise.toml`, or set with [`Dataset::set_noise_file`]).
     pub fn noise(&self) -> Option<&Arc<NoiseModel>> {
         self.noise.as_ref()
     }

@@ -76,13 +76,13 @@ mod tests {
         for state in 0u32..(1 << n) {
             let first = (0..n).find(|&j| state >> j & 1 == 1);
             let psi = first.map_or(nu_beyond, |j| nu[j]);
-            for i in 0..n {
+            for (i, mi) in m.iter_mut().enumerate() {
                 let oi = (state >> i & 1) as usize;
                 let mut w = psi;
                 for j in (0..n).filter(|&j| j != i) {
                     w *= if state >> j & 1 == 1 { mu[j] } else { 1.0 - mu[j] };
                 }
-                m[i][oi] += w;
+                mi[oi] += w;
             }
         }
         // An uninformative factor (all likelihoods zero) sends 1/2, as the fast form does.

@@ -108,7 +108,7 @@ struct Keyframe {
 const MSG_EPS: f64 = 1e-6;
 
 /// Image rows per block of parallel work; fixed so results do not depend on thread count.
-const ROWS_PER_BLOCK: u32 = 8;
+const ROWS_PER_BLOCK: u32 = 16;
 
 fn logit(p: f64) -> f64 {
     (p / (1.0 - p)).ln()
@@ -354,11 +354,12 @@ impl MrfEngine {
         let kf = &self.keyframes[i];
         let rays = FrameRays::new(&kf.frame);
         let blocks: Vec<u32> = (0..rays.rows().div_ceil(ROWS_PER_BLOCK)).collect();
-        // Per block: voxel -> (sum of length * message, sum of length).
-        let partials: Vec<FxHashMap<VoxelKey, (f64, f64)>> = blocks
+        // Per block: voxel -> (sum of length * message, sum of length), in bricks so that a
+        // ray's consecutive voxels share one lookup.
+        let partials: Vec<Grid<(f32, f32)>> = blocks
             .par_iter()
             .map(|&b| {
-                let mut acc = FxHashMap::default();
+                let mut acc = Grid::new(self.resolution()).expect("valid resolution");
                 let mut scratch = RayScratch::default();
                 let rows = b * ROWS_PER_BLOCK..((b + 1) * ROWS_PER_BLOCK).min(rays.rows());
                 for v in rows {
@@ -369,18 +370,22 @@ impl MrfEngine {
                 acc
             })
             .collect();
-        let mut total: FxHashMap<VoxelKey, (f64, f64)> = FxHashMap::default();
+        // Merged in block order: the same sums whatever the number of threads.
+        let mut total: Grid<(f32, f32)> = Grid::new(self.resolution()).expect("valid resolution");
         for part in partials {
-            for (k, (wm, w)) in part {
-                let e = total.entry(k).or_insert((0.0, 0.0));
-                e.0 += wm;
-                e.1 += w;
+            for (bk, brick) in part.bricks() {
+                let target = total.brick_or_insert(*bk);
+                for (slot, (wm, w)) in brick.iter() {
+                    let e = target.get_or_insert(slot, (0.0, 0.0));
+                    e.0 += wm;
+                    e.1 += w;
+                }
             }
         }
         let mut out: Vec<(VoxelKey, f32)> = total
-            .into_iter()
+            .iter()
             .filter(|(_, (_, w))| *w > 0.0)
-            .map(|(k, (wm, w))| (k, logit((wm / w).clamp(MSG_EPS, 1.0 - MSG_EPS)) as f32))
+            .map(|(k, (wm, w))| (k, logit((*wm as f64 / *w as f64).clamp(MSG_EPS, 1.0 - MSG_EPS)) as f32))
             .collect();
         out.sort_unstable_by_key(|(k, _)| *k);
         out
@@ -388,13 +393,7 @@ impl MrfEngine {
 
     /// One ray: gather the allocated voxels it crosses, their cavities and likelihoods, and
     /// add its outgoing messages to `acc`.
-    fn trace_ray(
-        &self,
-        kf: &Keyframe,
-        ray: &PixelRay,
-        scratch: &mut RayScratch,
-        acc: &mut FxHashMap<VoxelKey, (f64, f64)>,
-    ) {
+    fn trace_ray(&self, kf: &Keyframe, ray: &PixelRay, scratch: &mut RayScratch, acc: &mut Grid<(f32, f32)>) {
         let Some(seg) = ray_segment(ray, &kf.noise, &self.limits) else { return };
         let r = self.resolution();
         let measured = ray.range * ray.cz;
@@ -430,10 +429,18 @@ impl MrfEngine {
             0.0
         };
         ray_messages(&scratch.mu, &scratch.nu, beyond, &mut scratch.out);
-        for (j, key) in scratch.keys.iter().enumerate() {
-            let e = acc.entry(*key).or_insert((0.0, 0.0));
-            e.0 += scratch.length[j] * scratch.out[j];
-            e.1 += scratch.length[j];
+        let mut j = 0;
+        while j < scratch.keys.len() {
+            // One brick lookup per run of voxels in the same brick.
+            let bk = scratch.keys[j].brick();
+            let brick = acc.brick_or_insert(bk);
+            while j < scratch.keys.len() && scratch.keys[j].brick() == bk {
+                let (l, m) = (scratch.length[j], scratch.out[j]);
+                let e = brick.get_or_insert(scratch.keys[j].slot(), (0.0, 0.0));
+                e.0 += (l * m) as f32;
+                e.1 += l as f32;
+                j += 1;
+            }
         }
     }
 }

@@ -7,9 +7,9 @@
 //! - [`source`]: where frames come from — TUM / ICL-NUIM datasets and the scene simulator;
 //! - [`frames`]: one reading — depth image, camera, pose, noise model;
 //! - [`rays`]: pixel rays and exact voxel traversal;
-//! - [`inference`]: the engines (log-odds today) behind one [`inference::Engine`] trait;
+//! - [`inference`]: the engines (log-odds, MRF) behind one [`inference::Engine`] trait;
 //! - [`map`]: the sparse bricked voxel grid and the finished [`map::Map`] with its file format;
-//! - [`outputs`]: exports (PLY).
+//! - [`outputs`]: exports (PLY), the accuracy metric, ground-truth metrics and pictures.
 //!
 //! ```no_run
 //! use mrfmap::inference::{EngineConfig, EngineKind, new_engine};

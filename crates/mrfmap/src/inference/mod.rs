@@ -9,13 +9,19 @@
 //!   ([`SensorModel`]).
 //! - [`MrfEngine`]: MRFMap's ray Markov random field with loopy belief propagation over
 //!   keyframes (ALGORITHMS.md 5.3); keyframes can be added, removed and re-posed.
+//! - [`CrmEngine`]: confidence-rich mapping, a pdf over occupancy per voxel (mean and
+//!   variance) updated through the sensor cause model (ALGORITHMS.md 5.2). Library only for
+//!   now: at 640x480 it is about 90 times slower per frame than log-odds, too slow for the
+//!   command line's demo; see its module documentation.
 
+mod crm;
 mod logodds;
 mod mrf;
 
 use std::fmt;
 use std::str::FromStr;
 
+pub use crm::{CrmEngine, CrmParams, crm_ray_factors};
 pub use logodds::{LogOddsEngine, LogOddsParams, SensorModel};
 pub use mrf::{Allocation, KeyframeId, KeyframeSelection, MU_EPS, MrfEngine, MrfParams, ray_messages};
 

@@ -187,9 +187,7 @@ impl Engine for CrmEngine {
                 let (mut keys, mut means, mut nus, mut factors) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
                 for ray in rays.row(v) {
                     let z = ray.range * ray.cz;
-                    let (bias, std) = noise.bias_std(ray.u, ray.v, z);
-                    let extra = (z - bias + 3.0 * std).max(0.5 * z) / ray.cz - ray.range;
-                    let Some(seg) = this.limits.segment(&ray, extra) else { continue };
+                    let Some(seg) = this.limits.forward_model_segment(&ray, &noise) else { continue };
                     keys.clear();
                     means.clear();
                     nus.clear();

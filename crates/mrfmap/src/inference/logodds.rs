@@ -17,7 +17,7 @@ use std::ops::ControlFlow;
 use rayon::prelude::*;
 use rustc_hash::FxHashMap;
 
-use super::Engine;
+use super::{Engine, logit, sigmoid};
 use crate::error::{Error, Result};
 use crate::frames::Frame;
 use crate::map::{BrickKey, Grid, Map, MapVoxel, SlotMask, VoxelKey, mask_slots};
@@ -107,14 +107,6 @@ impl Default for LogOddsParams {
     fn default() -> Self {
         LogOddsParams { model: SensorModel::OCTOMAP, clamp_min: 0.1192, clamp_max: 0.971 }
     }
-}
-
-fn logit(p: f64) -> f64 {
-    (p / (1.0 - p)).ln()
-}
-
-fn sigmoid(l: f32) -> f32 {
-    1.0 / (1.0 + (-l).exp())
 }
 
 /// Log-odds occupancy mapping.
@@ -243,7 +235,7 @@ impl Engine for LogOddsEngine {
 
     fn map(&self) -> Map {
         let mut map = Map::new(self.name(), self.grid.resolution()).expect("valid resolution");
-        map.voxels = self.grid.map(|l| MapVoxel { occupancy: sigmoid(*l), variance: 0.0 });
+        map.voxels = self.grid.map(|l| MapVoxel { occupancy: sigmoid(*l as f64) as f32, variance: 0.0 });
         let p = self.params;
         let mut params = vec![("clamp_min", p.clamp_min), ("clamp_max", p.clamp_max)];
         match p.model {

@@ -30,6 +30,16 @@ use crate::frames::Frame;
 use crate::map::Map;
 use crate::rays::RayLimits;
 
+/// Log-odds of a probability.
+pub(crate) fn logit(p: f64) -> f64 {
+    (p / (1.0 - p)).ln()
+}
+
+/// Probability of a log-odds value.
+pub(crate) fn sigmoid(l: f64) -> f64 {
+    1.0 / (1.0 + (-l).exp())
+}
+
 /// An occupancy inference engine.
 pub trait Engine: Send {
     /// Short name stored in map files (`logodds`, ...).

@@ -26,7 +26,7 @@ use rayon::prelude::*;
 
 use crate::frames::{Camera, DepthImage, Pose};
 use crate::map::{BRICK_EDGE, BRICK_VOXELS, BrickKey, Map, MapVoxel, OCCUPIED_THRESHOLD};
-use crate::rays::{Aabb, for_each_crossing};
+use crate::rays::{Aabb, for_each_crossing, pixel_direction, pose_parts};
 
 /// Occupancies are clamped below 1 by this much so that `alpha` stays finite.
 const P_MAX: f64 = 1.0 - 1e-6;
@@ -239,14 +239,15 @@ impl<'a> Scorer<'a> {
     /// Scores the held-out z-depth image `depth` seen from `pose` (parallel by row).
     pub fn score_view(&self, camera: &Camera, pose: &Pose, depth: &DepthImage) -> ViewScore {
         let (w, h) = (depth.width(), depth.height());
+        let (rotation, origin) = pose_parts(pose);
         let classes: Vec<PixelClass> = (0..h)
             .into_par_iter()
             .flat_map_iter(|v| {
                 (0..w).map(move |u| match depth.get(u, v) {
                     None => PixelClass::NoDepth,
                     Some(z) => {
-                        let (o, d, norm) = pixel_ray(camera, pose, u, v);
-                        self.classify_ray(o, d, z as f64 * norm, |_| {}).class
+                        let (d, norm) = pixel_direction(camera, &rotation, u, v);
+                        self.classify_ray(origin, d, z as f64 * norm, |_| {}).class
                     }
                 })
             })
@@ -275,9 +276,10 @@ impl<'a> Scorer<'a> {
             return None;
         }
         let z = depth.get(u, v)?;
-        let (o, d, norm) = pixel_ray(camera, pose, u, v);
+        let (rotation, origin) = pose_parts(pose);
+        let (d, norm) = pixel_direction(camera, &rotation, u, v);
         let mut steps = Vec::new();
-        let verdict = self.classify_ray(o, d, z as f64 * norm, |s| steps.push(s));
+        let verdict = self.classify_ray(origin, d, z as f64 * norm, |s| steps.push(s));
         Some((steps, verdict))
     }
 }
@@ -309,15 +311,6 @@ impl ViewScore {
     pub fn accuracy(&self) -> Option<f64> {
         (self.valid() > 0).then(|| self.accurate as f64 / self.valid() as f64)
     }
-}
-
-/// Ray of pixel `(u, v)` in the world: origin, unit direction, and range per metre of z-depth.
-fn pixel_ray(camera: &Camera, pose: &Pose, u: u32, v: u32) -> ([f64; 3], [f64; 3], f64) {
-    let ray = camera.pixel_ray(u as f64, v as f64);
-    let norm = ray.norm();
-    let d = pose.rotation * (ray / norm);
-    let o = pose.translation.vector;
-    ([o.x, o.y, o.z], [d.x, d.y, d.z], norm)
 }
 
 /// Scores `map` against the held-out z-depth image `depth` seen from `pose`; a one-view

@@ -11,7 +11,7 @@ pub use traversal::{Crossing, crossings, for_each_crossing};
 
 use nalgebra::Matrix3;
 
-use crate::frames::Frame;
+use crate::frames::{Camera, Frame, NoiseModel, Pose};
 
 /// A world-space ray through one valid depth pixel.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -30,6 +30,22 @@ pub struct PixelRay {
     pub cz: f64,
 }
 
+/// Unit world direction of pixel `(u, v)` for a camera with rotation `rotation` (camera to
+/// world), and the norm of its z = 1 camera ray: range = z-depth * norm.
+#[inline]
+pub fn pixel_direction(camera: &Camera, rotation: &Matrix3<f64>, u: u32, v: u32) -> ([f64; 3], f64) {
+    let ray = camera.pixel_ray(u as f64, v as f64);
+    let norm = ray.norm();
+    let d = rotation * (ray / norm);
+    ([d.x, d.y, d.z], norm)
+}
+
+/// The rotation matrix and origin of a pose, in the form ray generation wants.
+pub fn pose_parts(pose: &Pose) -> (Matrix3<f64>, [f64; 3]) {
+    let t = pose.translation.vector;
+    (*pose.rotation.to_rotation_matrix().matrix(), [t.x, t.y, t.z])
+}
+
 /// Ray generator for one frame: precomputes the rotation once, then yields rays row by row
 /// (rows are the unit of parallel work).
 pub struct FrameRays<'a> {
@@ -41,8 +57,8 @@ pub struct FrameRays<'a> {
 impl<'a> FrameRays<'a> {
     /// Rays of `frame`.
     pub fn new(frame: &'a Frame) -> Self {
-        let t = frame.pose.translation.vector;
-        FrameRays { frame, rotation: *frame.pose.rotation.to_rotation_matrix().matrix(), origin: [t.x, t.y, t.z] }
+        let (rotation, origin) = pose_parts(&frame.pose);
+        FrameRays { frame, rotation, origin }
     }
 
     /// Number of image rows.
@@ -58,10 +74,8 @@ impl<'a> FrameRays<'a> {
                 return None;
             }
             let u = u as u32;
-            let ray = cam.pixel_ray(u as f64, v as f64);
-            let norm = ray.norm();
-            let d = self.rotation * (ray / norm);
-            Some(PixelRay { u, v, origin: self.origin, dir: [d.x, d.y, d.z], range: z as f64 * norm, cz: 1.0 / norm })
+            let (dir, norm) = pixel_direction(cam, &self.rotation, u, v);
+            Some(PixelRay { u, v, origin: self.origin, dir, range: z as f64 * norm, cz: 1.0 / norm })
         })
     }
 
@@ -170,6 +184,16 @@ impl RayLimits {
     /// reading then only says "free up to max range").
     pub fn surface_range(&self, ray: &PixelRay) -> Option<f64> {
         (self.max_range.is_none_or(|m| ray.range <= m)).then_some(ray.range)
+    }
+
+    /// The segment the forward-model engines (MRF, CRM) use: from the camera to 3 std beyond
+    /// the bias-corrected depth (where the sensor model stops carrying information), within
+    /// the limits.
+    pub fn forward_model_segment(&self, ray: &PixelRay, noise: &NoiseModel) -> Option<Segment> {
+        let z = ray.range * ray.cz;
+        let (bias, std) = noise.bias_std(ray.u, ray.v, z);
+        let z_end = (z - bias + 3.0 * std).max(0.5 * z);
+        self.segment(ray, z_end / ray.cz - ray.range)
     }
 
     /// The segment of `ray` from the camera to its surface (or `extra` metres past it, for

@@ -36,7 +36,7 @@ use rustc_hash::FxHashMap;
 
 pub use messages::{MU_EPS, ray_messages};
 
-use super::Engine;
+use super::{Engine, logit, sigmoid};
 use crate::error::{Error, Result};
 use crate::frames::{Frame, NoiseModel, Pose, default_noise_model};
 use crate::map::{BRICK_EDGE, BRICK_VOXELS, BrickKey, Grid, Map, MapVoxel, VoxelKey};
@@ -109,14 +109,6 @@ const MSG_EPS: f64 = 1e-6;
 
 /// Image rows per block of parallel work; fixed so results do not depend on thread count.
 const ROWS_PER_BLOCK: u32 = 16;
-
-fn logit(p: f64) -> f64 {
-    (p / (1.0 - p)).ln()
-}
-
-fn sigmoid(l: f64) -> f64 {
-    1.0 / (1.0 + (-l).exp())
-}
 
 /// MRFMap inference over keyframes.
 ///
@@ -302,7 +294,7 @@ impl MrfEngine {
             .into_par_iter()
             .fold(Vec::new, |mut out: Vec<BrickKey>, v| {
                 for ray in rays.row(v) {
-                    let Some(seg) = ray_segment(&ray, &kf.noise, &limits) else { continue };
+                    let Some(seg) = limits.forward_model_segment(&ray, &kf.noise) else { continue };
                     if seg.hits_surface {
                         // Bricks of the voxels within one voxel of the depth point.
                         let p = FrameRays::endpoint(&ray);
@@ -394,7 +386,7 @@ impl MrfEngine {
     /// One ray: gather the allocated voxels it crosses, their cavities and likelihoods, and
     /// add its outgoing messages to `acc`.
     fn trace_ray(&self, kf: &Keyframe, ray: &PixelRay, scratch: &mut RayScratch, acc: &mut Grid<(f32, f32)>) {
-        let Some(seg) = ray_segment(ray, &kf.noise, &self.limits) else { return };
+        let Some(seg) = self.limits.forward_model_segment(ray, &kf.noise) else { return };
         let r = self.resolution();
         let measured = ray.range * ray.cz;
         scratch.clear();
@@ -443,16 +435,6 @@ impl MrfEngine {
             }
         }
     }
-}
-
-/// The part of a ray the MRF uses: from the camera (or the bounds) to 3 std beyond the
-/// bias-corrected measurement (or the max range / bounds).
-fn ray_segment(ray: &PixelRay, noise: &NoiseModel, limits: &RayLimits) -> Option<crate::rays::Segment> {
-    let z = ray.range * ray.cz;
-    let (bias, std) = noise.bias_std(ray.u, ray.v, z);
-    let z_end = (z - bias + 3.0 * std).max(z * 0.5);
-    let extra = z_end / ray.cz - ray.range;
-    limits.segment(ray, extra)
 }
 
 fn check_frame(frame: &Frame) -> Result<()> {

@@ -25,6 +25,10 @@ struct Cli {
 enum Command {
     /// Build a map from a dataset.
     Build(commands::build::Args),
+    /// Learn a per-patch noise model (noise.toml) from measured and true depth images.
+    Calibrate(commands::calibrate::Args),
+    /// Look at a noise model: `noise plot noise.toml -o curves.png`.
+    Noise(commands::noise::Args),
     /// Export a map to PLY.
     Export(commands::export::Args),
     /// Describe a map file.
@@ -57,6 +61,8 @@ fn main() {
         }
         match cli.command {
             Command::Build(a) => commands::build::run(a),
+            Command::Calibrate(a) => commands::calibrate::run(a),
+            Command::Noise(a) => commands::noise::run(a),
             Command::Export(a) => commands::export::run(a),
             Command::Info(a) => commands::info::run(a),
             Command::Simulate(a) => commands::simulate::run(a),

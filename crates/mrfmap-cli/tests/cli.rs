@@ -318,3 +318,52 @@ fn bad_scene_and_map_files_give_clear_errors() {
     assert!(!o.status.success() && stderr(&o).contains("absent.mrfmap"), "{}", stderr(&o));
     assert!(!dir.join("x.ply").exists());
 }
+
+#[test]
+fn calibrate_and_plot_noise() {
+    let dir = workdir("calibrate");
+    let data = dataset(&dir);
+    let (depth, gt) = (data.join("depth"), data.join("gt_depth"));
+    let model = dir.join("learnt.toml");
+    let args = ["calibrate", "--measured", s(&depth), "--truth", s(&gt), "-o", s(&model)];
+    let o = run(&[&args[..], &["--patch", "40", "--min-samples", "20"]].concat());
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stdout(&o).contains("4 image pairs"), "{}", stdout(&o));
+    // The scene's sensor: bias 0.002 z^2, std 0.002 + 0.002 z^2. Check the aggregate at 2 m.
+    let learnt = mrfmap::frames::NoiseModel::load(&model).unwrap();
+    let (b, sd) = (learnt.bias.eval(2.0), learnt.std.eval(2.0));
+    assert!((b - 0.008).abs() < 0.004, "bias at 2 m: {b}");
+    assert!((sd / 0.010 - 1.0).abs() < 0.3, "std at 2 m: {sd}");
+    assert_eq!(learnt.patches.as_ref().map(|p| (p.rows, p.cols)), Some((2, 2)));
+
+    let png = dir.join("curves.png");
+    let o = run(&["noise", "plot", s(&model), "-o", s(&png), "--depth", "1.5"]);
+    assert!(o.status.success() && png.exists(), "{}", stderr(&o));
+    let o = run(&["noise", "plot", s(&model), "-o", s(&dir.join("x.png")), "--range", "3,1"]);
+    assert!(!o.status.success() && stderr(&o).contains("--range"), "{}", stderr(&o));
+
+    // A file missing from one folder is skipped with a warning naming it.
+    std::fs::remove_file(gt.join("000002.png")).unwrap();
+    let o = run(&args);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stderr(&o).contains("1 image(s)") && stderr(&o).contains("000002.png"), "{}", stderr(&o));
+
+    // Sizes that do not match: an error naming the file, and no output written.
+    let small = mrfmap::frames::DepthImage::from_vec(2, 2, vec![1.0; 4]).unwrap();
+    mrfmap::source::write_depth_png(&gt.join("000001.png"), &small, 5000.0).unwrap();
+    let fresh = dir.join("fresh.toml");
+    let o = run(&["calibrate", "--measured", s(&depth), "--truth", s(&gt), "-o", s(&fresh)]);
+    assert!(!o.status.success() && stderr(&o).contains("000001.png") && stderr(&o).contains("2x2"), "{}", stderr(&o));
+    assert!(!fresh.exists());
+
+    // Not a PNG.
+    std::fs::write(gt.join("000001.png"), b"not a png").unwrap();
+    let o = run(&["calibrate", "--measured", s(&depth), "--truth", s(&gt), "-o", s(&fresh)]);
+    assert!(stderr(&o).contains("000001.png") && stderr(&o).contains("unreadable PNG"), "{}", stderr(&o));
+
+    // No common names, and no depth scale to be found.
+    let o = run(&["calibrate", "--measured", s(&depth), "--truth", s(&dir), "-o", s(&fresh)]);
+    assert!(stderr(&o).contains("no PNG file names appear in both"), "{}", stderr(&o));
+    let o = run(&["calibrate", "--measured", s(&data), "--truth", s(&gt), "-o", s(&fresh)]);
+    assert!(stderr(&o).contains("--depth-scale"), "{}", stderr(&o));
+}

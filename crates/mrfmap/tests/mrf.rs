@@ -243,3 +243,52 @@ fn full_allocation_maps_free_space_band_allocation_leaves_it_unknown() {
     }
     assert!(full.marginals().count() > band.marginals().count());
 }
+
+/// A sensor that reads 10 cm long in the left half of the image only. The MRF with the true
+/// per-patch model puts the whole wall where it is; with the aggregate (no bias) model the left
+/// half lands 10 cm deep. Log-odds ignores noise models: same map with or without one.
+#[test]
+fn mrf_uses_per_patch_models_and_logodds_ignores_them() {
+    use mrfmap::frames::{PatchModel, Poly};
+    let patchy = NoiseModel {
+        bias: Poly([0.0; 3]),
+        std: Poly([0.005, 0.0, 0.0]),
+        patches: Some(PatchModel {
+            size: 20,
+            rows: 3,
+            cols: 4,
+            bias: (0..12).map(|i| Poly([if i % 4 < 2 { 0.1 } else { 0.0 }, 0.0, 0.0])).collect(),
+            std: vec![Poly([0.005, 0.0, 0.0]); 12],
+        }),
+    };
+    let mut s = scene(&format!(
+        "{SMALL_CAMERA}[[box]]\nmin = [2.0, -4.0, -1.0]\nmax = [2.3, 4.0, 1.0]\n\
+         [[view]]\neye = [0.0, 0.0, 0.0]\ntarget = [1.0, 0.0, 0.0]\n"
+    ));
+    s.noise = Some(patchy.clone());
+    let poses: Vec<Pose> = (0..3)
+        .map(|k| look_at([0.0, 0.1 * k as f64, 0.0].into(), [1.0, 0.1 * k as f64, 0.0].into()).unwrap())
+        .collect();
+    let noisy = frames(&s, &poses, Some(5));
+    let with_model = |model: &NoiseModel| -> Vec<Frame> {
+        noisy.iter().cloned().map(|f| Frame { noise: Some(Arc::new(model.clone())), ..f }).collect()
+    };
+    let mean_occupied_x = |e: &MrfEngine| {
+        let (n, sum) = e
+            .marginals()
+            .filter(|(_, p)| *p > 0.5)
+            .fold((0usize, 0.0), |(n, s), (k, _)| (n + 1, s + k.center(0.05)[0]));
+        sum / n.max(1) as f64
+    };
+    let aggregate = NoiseModel::aggregate(Poly([0.0; 3]), Poly([0.005, 0.0, 0.0]));
+    let right = mean_occupied_x(&build_mrf(&with_model(&patchy), 0.05, 3));
+    let wrong = mean_occupied_x(&build_mrf(&with_model(&aggregate), 0.05, 3));
+    println!("mean x of occupied voxels: {right:.3} with the per-patch model, {wrong:.3} without");
+    assert!((2.0..2.06).contains(&right), "per-patch model: wall face at {right}");
+    assert!(wrong > 2.065, "aggregate model: wall face at {wrong}");
+
+    let a = build_logodds(&with_model(&patchy), 0.05);
+    let b = build_logodds(&noisy.iter().cloned().map(|f| Frame { noise: None, ..f }).collect::<Vec<_>>(), 0.05);
+    assert_eq!(a.occupied_count(), b.occupied_count());
+    assert_eq!(a.voxels.len(), b.voxels.len());
+}

@@ -2,12 +2,14 @@
 
 pub mod bench;
 pub mod build;
+pub mod calibrate;
 pub mod compare;
 pub mod demo;
 pub mod eval;
 pub mod export;
 pub mod info;
 pub mod loo;
+pub mod noise;
 pub mod simulate;
 
 /// clap parser for a strictly positive, finite number (resolution, max range).

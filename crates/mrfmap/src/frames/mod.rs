@@ -1,9 +1,10 @@
 //! Frames: what one sensor reading is — a depth image, the camera that took it, where it
-//! was (pose) and how it errs (noise model).
+//! was (pose) and how it errs (noise model, and its calibration from image pairs).
 //!
 //! Sources (`crate::source`) produce [`Frame`]s; ray generation (`crate::rays`) turns
 //! them into world-space rays for the inference engines.
 
+mod calibration;
 mod camera;
 mod depth;
 mod noise;
@@ -11,6 +12,7 @@ mod pose;
 
 use std::sync::Arc;
 
+pub use calibration::{BinStats, Calibration, CalibrationOptions, Calibrator, RESERVOIR, weighted_polyfit};
 pub use camera::Camera;
 pub use depth::DepthImage;
 pub use noise::{NoiseModel, PatchModel, Poly, STD_FLOOR, erfc, normal_mass};

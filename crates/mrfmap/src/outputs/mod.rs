@@ -4,9 +4,12 @@
 //! - [`Scorer`] (and the shorthand [`score_view`]): the MRFMap accuracy metric on held-out views;
 //! - [`truth_metrics`]: MAE, ROC AUC, inconsistency and sigma-error correlation against an
 //!   analytic scene;
-//! - `pictures`: accuracy images, per-ray plots, map slices.
+//! - `pictures`: accuracy images, per-ray plots, map slices;
+//! - [`Canvas`] and [`PlotArea`]: raster figures with text (plots of noise models, scaling
+//!   curves) without a font or plotting dependency.
 
 mod accuracy;
+mod canvas;
 pub mod pictures;
 mod ply;
 mod truth;
@@ -14,5 +17,6 @@ mod truth;
 pub use accuracy::{
     AccuracyParams, PixelClass, ProfileStep, RayVerdict, Scorer, VISIBILITY_FLOOR, ViewScore, score_view,
 };
+pub use canvas::{Canvas, PlotArea, Rgb, nice_step};
 pub use ply::{PlyOptions, PlyVertices, read_ply, write_ply};
 pub use truth::{TruthMetrics, VoxelTruth, mean_sigma, pearson, roc_auc, true_occupancy, truth_metrics, voxel_truths};

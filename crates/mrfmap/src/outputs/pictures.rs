@@ -1,14 +1,17 @@
 //! Pictures a person looks at: accuracy images (PNG), per-ray plots (SVG, so they carry
-//! text without a font dependency) and map slices (PNG), all written atomically.
+//! text without a font dependency), map slices and noise-model figures (PNG), all written
+//! atomically.
 
 use std::fmt::Write as _;
 use std::io::Write;
 use std::path::Path;
 
 use super::accuracy::{PixelClass, ProfileStep, RayVerdict, ViewScore};
+use super::canvas::{Canvas, PlotArea, Rgb, nice_step};
 use super::truth::{VoxelTruth, mean_sigma, true_occupancy};
 use crate::atomic_file::write_atomic;
 use crate::error::{Error, Result};
+use crate::frames::{NoiseModel, STD_FLOOR};
 use crate::map::{Map, VoxelKey};
 use crate::source::Scene;
 
@@ -127,11 +130,6 @@ pub fn ray_plot_svg(title: &str, steps: &[ProfileStep], verdict: &RayVerdict, to
     svg
 }
 
-fn nice_step(raw: f64) -> f64 {
-    let mag = 10f64.powf(raw.log10().floor());
-    [1.0, 2.0, 5.0, 10.0].iter().map(|m| m * mag).find(|s| *s >= raw).unwrap_or(10.0 * mag)
-}
-
 fn escape(s: &str) -> String {
     s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;")
 }
@@ -195,4 +193,92 @@ pub fn write_truth_slices(map: &Map, scene: &Scene, z: f64, dir: &Path) -> Resul
         written.push(path);
     }
     Ok(written)
+}
+
+/// The noise model as a figure (MRFMap Fig. 5): bias and std against true depth over
+/// `depths` for the aggregate model (black) and four patches (the ones with the lowest and
+/// highest std at `at_depth`, the centre one and the top-left one), plus a map of every
+/// patch's std at `at_depth` (viridis, scale in millimetres).
+///
+/// ```
+/// use mrfmap::frames::{NoiseModel, Poly};
+/// let m = NoiseModel::aggregate(Poly([0.0, 0.0, 0.004]), Poly([0.002, 0.0, 0.0035]));
+/// let c = mrfmap::outputs::pictures::noise_figure(&m, (0.3, 5.0), 2.0);
+/// assert_eq!(c.pixel(0, 0), [255, 255, 255]);
+/// ```
+pub fn noise_figure(model: &NoiseModel, depths: (f64, f64), at_depth: f64) -> Canvas {
+    const COLOURS: [Rgb; 4] = [[31, 119, 180], [214, 39, 40], [44, 160, 44], [148, 103, 189]];
+    let mut c = Canvas::new(1260, 440);
+    let samples: Vec<f64> = (0..=100).map(|i| depths.0 + (depths.1 - depths.0) * i as f64 / 100.0).collect();
+    // Chosen patches: (label, pixel inside it).
+    let mut chosen: Vec<(String, (u32, u32))> = Vec::new();
+    if let Some(p) = &model.patches {
+        let n = (p.rows * p.cols) as usize;
+        let std_at = |i: usize| p.std[i].eval(at_depth);
+        let lo = (0..n).min_by(|&a, &b| std_at(a).total_cmp(&std_at(b))).unwrap_or(0);
+        let hi = (0..n).max_by(|&a, &b| std_at(a).total_cmp(&std_at(b))).unwrap_or(0);
+        let centre = ((p.rows / 2) * p.cols + p.cols / 2) as usize;
+        for i in [lo, hi, centre, 0] {
+            let (r, col) = (i as u32 / p.cols, i as u32 % p.cols);
+            if !chosen.iter().any(|(_, px)| *px == (col * p.size, r * p.size)) {
+                chosen.push((format!("PATCH {r},{col}"), (col * p.size, r * p.size)));
+            }
+        }
+    }
+    type Curve = fn(&NoiseModel, u32, u32, f64) -> f64;
+    let panels: [(&str, &str, Curve, Curve); 2] = [
+        ("BIAS VS DEPTH", "BIAS (M)", |m, u, v, z| m.bias_std(u, v, z).0, |m, _, _, z| m.bias.eval(z)),
+        ("STD VS DEPTH", "STD (M)", |m, u, v, z| m.bias_std(u, v, z).1, |m, _, _, z| m.std.eval(z)),
+    ];
+    for (k, (title, y_label, per_patch, aggregate)) in panels.into_iter().enumerate() {
+        type Line = (String, Rgb, Vec<(f64, f64)>);
+        let mut curves: Vec<Line> = Vec::new();
+        let line = |f: &dyn Fn(f64) -> f64| samples.iter().map(|&z| (z, f(z))).collect::<Vec<_>>();
+        curves.push(("AGGREGATE".into(), [0, 0, 0], line(&|z| aggregate(model, 0, 0, z))));
+        for (j, (label, (u, v))) in chosen.iter().enumerate() {
+            curves.push((label.clone(), COLOURS[j % 4], line(&|z| per_patch(model, *u, *v, z))));
+        }
+        let ys = curves.iter().flat_map(|c| c.2.iter().map(|p| p.1));
+        let (ymin, ymax) = ys.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), y| (a.min(y), b.max(y)));
+        let x0 = 420 * k as i64;
+        let area = PlotArea::new(
+            &mut c,
+            (x0, 0, x0 + 420, 440),
+            depths,
+            (ymin.min(0.0), ymax),
+            "TRUE DEPTH (M)",
+            y_label,
+            title,
+        );
+        for (row, (label, colour, points)) in curves.iter().enumerate() {
+            area.polyline(&mut c, points, *colour);
+            area.legend(&mut c, row, label, *colour);
+        }
+    }
+    // Patch map of std at `at_depth`.
+    let black = [0, 0, 0];
+    c.text(850, 8, &format!("STD AT {at_depth:.1} M (MM)"), 2, black);
+    match &model.patches {
+        None => c.text(850, 200, "NO PER-PATCH MODEL", 2, black),
+        Some(p) => {
+            let values: Vec<f64> = p.std.iter().map(|s| s.eval(at_depth).max(STD_FLOOR) * 1e3).collect();
+            let (lo, hi) = values.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| (a.min(v), b.max(v)));
+            let cell = (360 / p.cols.max(p.rows)).max(1) as i64;
+            let (ox, oy) = (850, 40);
+            for (i, v) in values.iter().enumerate() {
+                let (r, col) = ((i as u32 / p.cols) as i64, (i as u32 % p.cols) as i64);
+                let t = if hi > lo { (v - lo) / (hi - lo) } else { 0.5 };
+                c.fill(ox + col * cell, oy + r * cell, ox + (col + 1) * cell, oy + (r + 1) * cell, viridis(t));
+            }
+            // Colour bar under the map.
+            let y = oy + p.rows as i64 * cell + 16;
+            for x in 0..300 {
+                c.fill(ox + x, y, ox + x + 1, y + 12, viridis(x as f64 / 299.0));
+            }
+            c.text(ox, y + 18, &format!("{lo:.1}"), 1, black);
+            let label = format!("{hi:.1}");
+            c.text(ox + 300 - Canvas::text_width(&label, 1), y + 18, &label, 1, black);
+        }
+    }
+    c
 }

@@ -195,7 +195,7 @@ impl Dataset {
     }
 
     fn read_depth(&self, path: &Path) -> Result<DepthImage> {
-        read_depth_png(path, self.camera.depth_scale, (self.camera.width, self.camera.height))
+        read_depth_png(path, self.camera.depth_scale, Some((self.camera.width, self.camera.height)))
     }
 }
 

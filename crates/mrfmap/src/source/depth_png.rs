@@ -7,11 +7,12 @@ use std::path::Path;
 use crate::error::{Error, Result};
 use crate::frames::DepthImage;
 
-/// Reads a 16-bit grayscale depth PNG into metres, checking its size against the camera's.
+/// Reads a 16-bit grayscale depth PNG into metres, checking its size against the camera's
+/// when `expected` is given.
 ///
 /// 8-bit, colour or paletted PNGs are refused with a message naming the file: silently
 /// reading them as depth would build a wrong map.
-pub fn read_depth_png(path: &Path, depth_scale: f64, expected: (u32, u32)) -> Result<DepthImage> {
+pub fn read_depth_png(path: &Path, depth_scale: f64, expected: Option<(u32, u32)>) -> Result<DepthImage> {
     let file = File::open(path).map_err(|e| Error::io(path, e))?;
     let bad = |m: String| Error::file(path, m);
     let mut reader =
@@ -24,8 +25,8 @@ pub fn read_depth_png(path: &Path, depth_scale: f64, expected: (u32, u32)) -> Re
             info.bit_depth as u8, info.color_type
         )));
     }
-    if (width, height) != expected {
-        return Err(bad(format!("image is {width}x{height} but camera.toml says {}x{}", expected.0, expected.1)));
+    if let Some((ew, eh)) = expected.filter(|&e| e != (width, height)) {
+        return Err(bad(format!("image is {width}x{height} but camera.toml says {ew}x{eh}")));
     }
     let mut buf = vec![0u8; reader.output_buffer_size().ok_or_else(|| bad("image too large".into()))?];
     reader.next_frame(&mut buf).map_err(|e| bad(format!("unreadable PNG: {e}")))?;
@@ -76,11 +77,11 @@ mod tests {
         img.set(2, 1, 20.0); // beyond 65535 / 5000 m: stored as no return
         let p = tmp("rt.png");
         write_depth_png(&p, &img, 5000.0).unwrap();
-        let back = read_depth_png(&p, 5000.0, (5, 3)).unwrap();
+        let back = read_depth_png(&p, 5000.0, Some((5, 3))).unwrap();
         assert!((back.get(0, 0).unwrap() - 1.2346).abs() < 1e-6);
         assert_eq!(back.get(4, 2), Some(6.5));
         assert_eq!(back.get(2, 1), None);
-        let e = read_depth_png(&p, 5000.0, (640, 480)).unwrap_err().to_string();
+        let e = read_depth_png(&p, 5000.0, Some((640, 480))).unwrap_err().to_string();
         assert!(e.contains("rt.png") && e.contains("5x3") && e.contains("640x480"), "{e}");
     }
 
@@ -92,11 +93,11 @@ mod tests {
         enc.set_color(png::ColorType::Rgb);
         enc.set_depth(png::BitDepth::Eight);
         enc.write_header().unwrap().write_image_data(&[0; 12]).unwrap();
-        let e = read_depth_png(&p, 5000.0, (2, 2)).unwrap_err().to_string();
+        let e = read_depth_png(&p, 5000.0, Some((2, 2))).unwrap_err().to_string();
         assert!(e.contains("eight.png") && e.contains("16-bit"), "{e}");
         let g = tmp("garbage.png");
         std::fs::write(&g, b"not a png at all").unwrap();
-        let e = read_depth_png(&g, 5000.0, (2, 2)).unwrap_err().to_string();
+        let e = read_depth_png(&g, 5000.0, Some((2, 2))).unwrap_err().to_string();
         assert!(e.contains("garbage.png") && e.contains("unreadable PNG"), "{e}");
     }
 }

@@ -6,7 +6,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use mrfmap::frames::Frame;
-use mrfmap::inference::{Allocation, EngineConfig, EngineKind, KeyframeSelection, MrfParams, new_engine};
+use mrfmap::inference::{Allocation, CrmParams, EngineConfig, EngineKind, KeyframeSelection, MrfParams, new_engine};
 use mrfmap::map::Map;
 use mrfmap::rays::{Aabb, RayLimits};
 use mrfmap::source::Dataset;
@@ -36,6 +36,9 @@ pub struct MapOptions {
     /// keyframe so far (auto).
     #[arg(long, default_value = "all", value_parser = ["all", "auto"])]
     pub keyframes: String,
+    /// CRM: particles per voxel pdf (memory per voxel is 4 * (particles + 1) bytes).
+    #[arg(long, default_value_t = 101, value_parser = clap::value_parser!(u16).range(2..))]
+    pub particles: u16,
 }
 
 impl MapOptions {
@@ -62,6 +65,7 @@ impl MapOptions {
                 allocation,
                 keyframes: if self.keyframes == "auto" { KeyframeSelection::AUTO } else { KeyframeSelection::All },
             },
+            crm: CrmParams { particles: self.particles as usize },
         })
     }
 }

@@ -6,6 +6,7 @@ pub mod calibrate;
 pub mod compare;
 pub mod demo;
 pub mod eval;
+pub mod experiment;
 pub mod export;
 pub mod info;
 pub mod loo;

@@ -9,6 +9,7 @@ mod camera;
 mod depth;
 mod noise;
 mod pose;
+mod scan;
 
 use std::sync::Arc;
 
@@ -17,6 +18,7 @@ pub use camera::Camera;
 pub use depth::DepthImage;
 pub use noise::{NoiseModel, PatchModel, Poly, STD_FLOOR, erfc, normal_mass};
 pub use pose::{Pose, look_at, pose_from_tum, pose_to_tum};
+pub use scan::{Beam, RangeScan};
 
 /// One depth reading ready for integration.
 #[derive(Clone, Debug)]

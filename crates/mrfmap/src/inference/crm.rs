@@ -29,12 +29,13 @@ use std::ops::ControlFlow;
 use std::sync::Arc;
 
 use rayon::prelude::*;
+use rustc_hash::FxHashMap;
 
 use super::Engine;
 use crate::error::{Error, Result};
-use crate::frames::{Frame, NoiseModel, default_noise_model};
-use crate::map::{Grid, Map, MapVoxel, VoxelKey};
-use crate::rays::{FrameRays, RayLimits, for_each_crossing};
+use crate::frames::{Frame, NoiseModel, RangeScan, default_noise_model};
+use crate::map::{BRICK_VOXELS, BrickKey, Grid, Map, MapVoxel, VoxelKey, mask_set, mask_slots};
+use crate::rays::{RayLimits, Rays, for_each_crossing};
 
 /// Means are kept in `[MEAN_EPS, 1 - MEAN_EPS]` inside the cause model.
 const MEAN_EPS: f64 = 1e-9;
@@ -93,6 +94,90 @@ pub fn crm_ray_factors(means: &[f64], nu: &[f64], nu_beyond: f64, out: &mut Vec<
     }
 }
 
+/// Largest free-pass count with a precomputed power table; larger counts compose powers.
+const POWER_TABLE: usize = 64;
+
+/// One brick of the CRM map: the voxels allocated in it, each with a pdf and its mean.
+#[derive(Clone, Debug)]
+struct CrmBrick {
+    /// Slot -> index into `means` (`u16::MAX`: not allocated).
+    local: [u16; BRICK_VOXELS],
+    means: Vec<f32>,
+    /// `particles` probabilities per allocated voxel.
+    pdfs: Vec<f32>,
+}
+
+impl CrmBrick {
+    fn new() -> Self {
+        CrmBrick { local: [u16::MAX; BRICK_VOXELS], means: Vec::new(), pdfs: Vec::new() }
+    }
+
+    #[inline]
+    fn index(&self, slot: usize) -> Option<usize> {
+        let i = self.local[slot];
+        (i != u16::MAX).then_some(i as usize)
+    }
+
+    /// Index of `slot`, allocating a uniform pdf (mean 0.5) if new.
+    fn index_or_insert(&mut self, slot: usize, k: usize) -> usize {
+        if let Some(i) = self.index(slot) {
+            return i;
+        }
+        let i = self.means.len();
+        self.local[slot] = i as u16;
+        self.means.push(0.5);
+        self.pdfs.extend(std::iter::repeat_n(1.0 / k as f32, k));
+        i
+    }
+}
+
+/// What one frame does to one brick: per slot the number of rays that passed through it
+/// without any chance of having caused their reading (their factor is `1 - m`), and the
+/// normalised factors `(alpha, beta)` of the rays whose cause model gave it some weight, in
+/// ray order.
+struct FrameBrick {
+    passes: Box<[u32; BRICK_VOXELS]>,
+    factors: Vec<(u16, f32, f32)>,
+}
+
+impl FrameBrick {
+    fn new() -> Self {
+        FrameBrick { passes: Box::new([0; BRICK_VOXELS]), factors: Vec::new() }
+    }
+}
+
+/// A frame's updates, per brick, gathered by one block of rows (and merged in row order).
+#[derive(Default)]
+struct FrameUpdates {
+    index: FxHashMap<BrickKey, u32>,
+    bricks: Vec<(BrickKey, FrameBrick)>,
+}
+
+impl FrameUpdates {
+    #[inline]
+    fn brick(&mut self, key: BrickKey) -> usize {
+        let next = self.bricks.len() as u32;
+        let i = *self.index.entry(key).or_insert(next);
+        if i == next {
+            self.bricks.push((key, FrameBrick::new()));
+        }
+        i as usize
+    }
+
+    /// Appends `other` (the rays after this block's), keeping ray order per brick.
+    fn merge(mut self, other: FrameUpdates) -> FrameUpdates {
+        for (key, b) in other.bricks {
+            let i = self.brick(key);
+            let mine = &mut self.bricks[i].1;
+            for (a, n) in mine.passes.iter_mut().zip(b.passes.iter()) {
+                *a += n;
+            }
+            mine.factors.extend(b.factors);
+        }
+        self
+    }
+}
+
 /// Confidence-rich mapping.
 ///
 /// ```
@@ -101,67 +186,227 @@ pub fn crm_ray_factors(means: &[f64], nu: &[f64], nu_beyond: f64, out: &mut Vec<
 /// assert!(e.map().has_variance);
 /// ```
 pub struct CrmEngine {
-    /// Voxel -> index of its pdf and mean.
-    index: Grid<u32>,
-    /// `particles` probabilities per voxel.
-    pdfs: Vec<f32>,
-    means: Vec<f32>,
-    particles: usize,
+    bricks: FxHashMap<BrickKey, CrmBrick>,
+    resolution: f64,
+    /// Particle positions `m_k = k / (K - 1)`.
+    grid: Vec<f32>,
+    /// `(1 - m_k)^n` for `n < POWER_TABLE`, row-major by `n`.
+    powers: Vec<f32>,
     limits: RayLimits,
     default_noise: Arc<NoiseModel>,
 }
 
 impl CrmEngine {
-    /// An empty map; needs at least 2 particles.
+    /// An empty map; needs 2 to 65535 particles and a valid resolution.
     pub fn new(resolution: f64, limits: RayLimits, params: CrmParams) -> Result<Self> {
-        if params.particles < 2 {
-            return Err(Error::Invalid(format!("CRM needs at least 2 particles, got {}", params.particles)));
+        let k = params.particles;
+        if !(2..=65_535).contains(&k) {
+            return Err(Error::Invalid(format!("CRM needs 2 to 65535 particles, got {k}")));
         }
+        Grid::<u8>::new(resolution)?; // validates the resolution
+        limits.validate()?;
+        let grid: Vec<f32> = (0..k).map(|j| (j as f64 / (k - 1) as f64) as f32).collect();
+        let powers =
+            (0..POWER_TABLE).flat_map(|n| grid.iter().map(move |m| (1.0 - *m as f64).powi(n as i32) as f32)).collect();
         Ok(CrmEngine {
-            index: Grid::new(resolution)?,
-            pdfs: Vec::new(),
-            means: Vec::new(),
-            particles: params.particles,
+            bricks: FxHashMap::default(),
+            resolution,
+            grid,
+            powers,
             limits,
             default_noise: Arc::new(default_noise_model()),
         })
     }
 
+    /// Particles per voxel.
+    pub fn particles(&self) -> usize {
+        self.grid.len()
+    }
+
+    /// Bytes of voxel state per allocated voxel: the pdf and the cached mean (the brick's
+    /// slot table, 1 KB per brick, comes on top).
+    pub fn bytes_per_voxel(&self) -> usize {
+        4 * (self.particles() + 1)
+    }
+
+    /// Number of allocated voxels.
+    pub fn voxel_count(&self) -> usize {
+        self.bricks.values().map(|b| b.means.len()).sum()
+    }
+
     /// Mean and variance of a voxel's occupancy, `None` if never observed.
     pub fn mean_variance(&self, key: VoxelKey) -> Option<(f64, f64)> {
-        let i = *self.index.get(key)? as usize;
-        Some(self.moments(i))
+        let b = self.bricks.get(&key.brick())?;
+        let i = b.index(key.slot())?;
+        Some(self.moments(&b.pdfs[i * self.particles()..(i + 1) * self.particles()]))
     }
 
-    fn pdf(&self, i: usize) -> &[f32] {
-        &self.pdfs[i * self.particles..(i + 1) * self.particles]
-    }
-
-    fn moments(&self, i: usize) -> (f64, f64) {
-        let k = (self.particles - 1) as f64;
+    fn moments(&self, pdf: &[f32]) -> (f64, f64) {
         let (mut mean, mut second) = (0.0, 0.0);
-        for (j, p) in self.pdf(i).iter().enumerate() {
-            let m = j as f64 / k;
-            mean += m * *p as f64;
-            second += m * m * *p as f64;
+        for (p, m) in pdf.iter().zip(&self.grid) {
+            let (p, m) = (*p as f64, *m as f64);
+            mean += m * p;
+            second += m * m * p;
         }
         (mean, (second - mean * mean).max(0.0))
     }
 
-    fn mean_of(&self, key: VoxelKey) -> f64 {
-        self.index.get(key).map_or(0.5, |i| self.means[*i as usize] as f64)
+    /// The cause-model factors of every ray of `rays`, from the map as it was before.
+    fn gather(&self, rays: &Rays, noise: &NoiseModel) -> FrameUpdates {
+        const BLOCK_ROWS: u32 = 8;
+        let r = self.resolution;
+        let blocks: Vec<FrameUpdates> = (0..rays.rows().div_ceil(BLOCK_ROWS))
+            .into_par_iter()
+            .map(|b| {
+                let mut up = FrameUpdates::default();
+                let (mut passed, mut window, mut means, mut nus, mut factors) =
+                    (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
+                let mut cached: Option<(BrickKey, Option<&CrmBrick>)> = None;
+                for v in b * BLOCK_ROWS..((b + 1) * BLOCK_ROWS).min(rays.rows()) {
+                    for ray in rays.row(v) {
+                        let Some(seg) = self.limits.forward_model_segment(&ray, noise) else { continue };
+                        let z = ray.range * ray.cz;
+                        passed.clear();
+                        window.clear();
+                        means.clear();
+                        nus.clear();
+                        for_each_crossing(ray.origin, ray.dir, seg.start, seg.end, r, |c| {
+                            // A beam with no return could not have been stopped by any voxel.
+                            let nu = if ray.returned {
+                                noise.likelihood_over(ray.u, ray.v, c.s_in * ray.cz, c.s_out * ray.cz, z)
+                            } else {
+                                0.0
+                            };
+                            if nu == 0.0 && window.is_empty() {
+                                // No cause weight here or before: the factor is exactly 1 - m,
+                                // whatever this voxel's mean, so it is only counted.
+                                passed.push(c.key);
+                                return ControlFlow::Continue(());
+                            }
+                            let brick = c.key.brick();
+                            let b = match cached {
+                                Some((k, b)) if k == brick => b,
+                                _ => {
+                                    let b = self.bricks.get(&brick);
+                                    cached = Some((brick, b));
+                                    b
+                                }
+                            };
+                            let mean = b.and_then(|b| b.index(c.key.slot())).map_or(0.5, |i| b.unwrap().means[i]);
+                            window.push(c.key);
+                            means.push(mean as f64);
+                            nus.push(nu);
+                            ControlFlow::Continue(())
+                        });
+                        let beyond = if seg.hits_surface {
+                            let z_end = seg.end * ray.cz;
+                            noise.likelihood_over(ray.u, ray.v, z_end, z_end + r * ray.cz, z)
+                        } else {
+                            1.0 // max range, no return or clipped: the light passed the whole segment
+                        };
+                        if window.is_empty() && beyond == 0.0 {
+                            continue; // the cause model carries no information
+                        }
+                        crm_ray_factors(&means, &nus, beyond, &mut factors);
+                        let mut current: Option<(BrickKey, usize)> = None;
+                        let mut slot_of = |up: &mut FrameUpdates, key: VoxelKey| {
+                            let brick = key.brick();
+                            match current {
+                                Some((k, i)) if k == brick => i,
+                                _ => {
+                                    let i = up.brick(brick);
+                                    current = Some((brick, i));
+                                    i
+                                }
+                            }
+                        };
+                        for key in &passed {
+                            let i = slot_of(&mut up, *key);
+                            up.bricks[i].1.passes[key.slot()] += 1;
+                        }
+                        for (key, &(alpha, beta)) in window.iter().zip(&factors) {
+                            // Scaled so the factor's maximum over [0, 1] is 1.
+                            let top = beta.max(alpha + beta);
+                            if !(top > 0.0 && top.is_finite()) {
+                                continue;
+                            }
+                            let i = slot_of(&mut up, *key);
+                            up.bricks[i].1.factors.push((key.slot() as u16, (alpha / top) as f32, (beta / top) as f32));
+                        }
+                    }
+                }
+                up
+            })
+            .collect();
+        blocks.into_iter().reduce(FrameUpdates::merge).unwrap_or_default()
     }
 
-    /// Index of a voxel's pdf, allocating a uniform one (mean 0.5) if new.
-    fn slot(&mut self, key: VoxelKey) -> usize {
-        if let Some(i) = self.index.get(key) {
-            return *i as usize;
+    /// Multiplies a frame's factors into the pdfs, brick by brick in parallel.
+    fn apply(&mut self, updates: FrameUpdates) {
+        let k = self.particles();
+        for (key, _) in &updates.bricks {
+            self.bricks.entry(*key).or_insert_with(CrmBrick::new);
         }
-        let i = self.means.len();
-        self.index.insert(key, i as u32);
-        self.pdfs.extend(std::iter::repeat_n(1.0 / self.particles as f32, self.particles));
-        self.means.push(0.5);
-        i
+        let (grid, powers) = (&self.grid, &self.powers);
+        let mut work: Vec<(&mut CrmBrick, FrameBrick)> = Vec::with_capacity(updates.bricks.len());
+        let mut by_key: FxHashMap<BrickKey, FrameBrick> = updates.bricks.into_iter().collect();
+        for (key, brick) in self.bricks.iter_mut() {
+            if let Some(fb) = by_key.remove(key) {
+                work.push((brick, fb));
+            }
+        }
+        work.into_par_iter().for_each(|(brick, mut fb)| {
+            // Factors grouped by slot, ray order kept within a slot.
+            fb.factors.sort_by_key(|f| f.0);
+            let mut touched = [0u64; 8];
+            for (slot, n) in fb.passes.iter().enumerate() {
+                if *n > 0 {
+                    mask_set(&mut touched, slot);
+                }
+            }
+            for f in &fb.factors {
+                mask_set(&mut touched, f.0 as usize);
+            }
+            let mut next_factor = 0;
+            let mut p = vec![0f32; k];
+            for slot in mask_slots(&touched) {
+                let i = brick.index_or_insert(slot, k);
+                let pdf = &mut brick.pdfs[i * k..(i + 1) * k];
+                p.copy_from_slice(pdf);
+                let mut n = fb.passes[slot] as usize;
+                while n > 0 {
+                    let step = n.min(POWER_TABLE - 1);
+                    for (pj, pw) in p.iter_mut().zip(&powers[step * k..(step + 1) * k]) {
+                        *pj *= pw;
+                    }
+                    n -= step;
+                    normalise(&mut p, pdf);
+                }
+                while next_factor < fb.factors.len() && fb.factors[next_factor].0 as usize == slot {
+                    let (_, alpha, beta) = fb.factors[next_factor];
+                    for (pj, m) in p.iter_mut().zip(grid) {
+                        *pj *= alpha * m + beta;
+                    }
+                    normalise(&mut p, pdf);
+                    next_factor += 1;
+                }
+                pdf.copy_from_slice(&p);
+                brick.means[i] = p.iter().zip(grid).map(|(pj, m)| pj * m).sum();
+            }
+        });
+    }
+}
+
+/// Renormalises `p` to sum 1; if every particle underflowed (or the sum is not finite) it
+/// falls back to `last`, the pdf before this frame, so a voxel is never lost.
+#[inline]
+fn normalise(p: &mut [f32], last: &[f32]) {
+    let sum: f32 = p.iter().sum();
+    if sum > 1e-30 && sum.is_finite() {
+        let inv = 1.0 / sum;
+        p.iter_mut().for_each(|x| *x *= inv);
+    } else {
+        p.copy_from_slice(last);
     }
 }
 
@@ -171,99 +416,36 @@ impl Engine for CrmEngine {
     }
 
     fn resolution(&self) -> f64 {
-        self.index.resolution()
+        self.resolution
     }
 
     fn integrate(&mut self, frame: &Frame) -> Result<()> {
         let noise = frame.noise.clone().unwrap_or_else(|| self.default_noise.clone());
-        let r = self.resolution();
-        let rays = FrameRays::new(frame);
-        let this = &*self;
-        // Factors of every ray from the map before this frame, in pixel order per row.
-        let rows: Vec<Vec<(VoxelKey, f64, f64)>> = (0..rays.rows())
-            .into_par_iter()
-            .map(|v| {
-                let mut out = Vec::new();
-                let (mut keys, mut means, mut nus, mut factors) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
-                for ray in rays.row(v) {
-                    let z = ray.range * ray.cz;
-                    let Some(seg) = this.limits.forward_model_segment(&ray, &noise) else { continue };
-                    keys.clear();
-                    means.clear();
-                    nus.clear();
-                    for_each_crossing(ray.origin, ray.dir, seg.start, seg.end, r, |c| {
-                        keys.push(c.key);
-                        means.push(this.mean_of(c.key));
-                        nus.push(noise.likelihood_over(ray.u, ray.v, c.s_in * ray.cz, c.s_out * ray.cz, z));
-                        ControlFlow::Continue(())
-                    });
-                    let z_end = seg.end * ray.cz;
-                    let beyond = if seg.hits_surface {
-                        noise.likelihood_over(ray.u, ray.v, z_end, z_end + r * ray.cz, z)
-                    } else {
-                        1.0 // a max-range or clipped reading: the light passed the whole segment
-                    };
-                    crm_ray_factors(&means, &nus, beyond, &mut factors);
-                    out.extend(keys.iter().zip(&factors).map(|(k, (a, b))| (*k, *a, *b)));
-                }
-                out
-            })
-            .collect();
-        // Group by voxel (stable: pixel order kept), then update voxels in parallel.
-        let mut updates: Vec<(VoxelKey, f64, f64)> = rows.into_iter().flatten().collect();
-        updates.sort_by_key(|u| u.0);
-        let mut groups: Vec<(usize, std::ops::Range<usize>)> = Vec::new();
-        let mut start = 0;
-        while start < updates.len() {
-            let key = updates[start].0;
-            let mut end = start;
-            while end < updates.len() && updates[end].0 == key {
-                end += 1;
-            }
-            groups.push((self.slot(key), start..end));
-            start = end;
-        }
-        let k = self.particles;
-        let grid: Vec<f64> = (0..k).map(|j| j as f64 / (k - 1) as f64).collect();
-        let mut pdf_chunks: Vec<&mut [f32]> = self.pdfs.chunks_mut(k).collect();
-        let mut slots: Vec<Option<&mut [f32]>> = pdf_chunks.drain(..).map(Some).collect();
-        let work: Vec<(usize, &mut [f32], std::ops::Range<usize>)> =
-            groups.into_iter().map(|(i, range)| (i, slots[i].take().expect("one group per voxel"), range)).collect();
-        let new_means: Vec<(usize, f32)> = work
-            .into_par_iter()
-            .map(|(i, pdf, range)| {
-                let mut p: Vec<f64> = pdf.iter().map(|x| *x as f64).collect();
-                for (_, alpha, beta) in &updates[range] {
-                    let mut sum = 0.0;
-                    for (pj, m) in p.iter_mut().zip(&grid) {
-                        *pj *= alpha * m + beta;
-                        sum += *pj;
-                    }
-                    if sum > 0.0 && sum.is_finite() {
-                        p.iter_mut().for_each(|pj| *pj /= sum);
-                    }
-                }
-                let mean: f64 = p.iter().zip(&grid).map(|(pj, m)| pj * m).sum();
-                for (dst, src) in pdf.iter_mut().zip(&p) {
-                    *dst = *src as f32;
-                }
-                (i, mean as f32)
-            })
-            .collect();
-        for (i, m) in new_means {
-            self.means[i] = m;
-        }
+        let updates = self.gather(&Rays::of_frame(frame), &noise);
+        self.apply(updates);
+        Ok(())
+    }
+
+    fn integrate_scan(&mut self, scan: &RangeScan) -> Result<()> {
+        let noise = scan.noise.clone().unwrap_or_else(|| self.default_noise.clone());
+        let updates = self.gather(&Rays::of_scan(scan), &noise);
+        self.apply(updates);
         Ok(())
     }
 
     fn map(&self) -> Map {
-        let mut map = Map::new(self.name(), self.resolution()).expect("valid resolution");
+        let mut map = Map::new(self.name(), self.resolution).expect("valid resolution");
         map.has_variance = true;
-        map.voxels = self.index.map(|i| {
-            let (mean, variance) = self.moments(*i as usize);
-            MapVoxel { occupancy: mean as f32, variance: variance as f32 }
-        });
-        map.params.insert("particles".into(), self.particles.to_string());
+        let k = self.particles();
+        for (bk, b) in &self.bricks {
+            for slot in 0..BRICK_VOXELS {
+                if let Some(i) = b.index(slot) {
+                    let (mean, variance) = self.moments(&b.pdfs[i * k..(i + 1) * k]);
+                    map.voxels.insert(bk.voxel(slot), MapVoxel { occupancy: mean as f32, variance: variance as f32 });
+                }
+            }
+        }
+        map.params.insert("particles".into(), k.to_string());
         map
     }
 }
@@ -343,17 +525,76 @@ mod tests {
         for f in wall_frames(300, 0.0) {
             e.integrate(&f).unwrap();
         }
-        for i in 0..e.means.len() {
-            let pdf = e.pdf(i);
-            let sum: f64 = pdf.iter().map(|p| *p as f64).sum();
-            assert!(pdf.iter().all(|p| *p >= 0.0 && p.is_finite()), "voxel {i}");
-            assert!((sum - 1.0).abs() < 1e-3, "voxel {i}: sum {sum}");
-            assert!(e.means[i].is_finite());
+        for b in e.bricks.values() {
+            for (i, pdf) in b.pdfs.chunks(e.particles()).enumerate() {
+                let sum: f64 = pdf.iter().map(|p| *p as f64).sum();
+                assert!(pdf.iter().all(|p| *p >= 0.0 && p.is_finite()), "voxel {i}");
+                assert!((sum - 1.0).abs() < 1e-3, "voxel {i}: sum {sum}");
+                assert!(b.means[i].is_finite());
+            }
         }
         // The wall voxel is confidently occupied, the space in front confidently free.
         let (m_wall, _) = e.mean_variance(VoxelKey([20, 0, 0])).unwrap();
         let (m_free, _) = e.mean_variance(VoxelKey([10, 0, 0])).unwrap();
         assert!(m_wall > 0.9 && m_free < 0.05, "wall {m_wall}, free {m_free}");
+    }
+
+    /// The engine (free passes counted, factors folded per brick) against the plain
+    /// definition: every ray's factors from `crm_ray_factors` over the whole ray, applied in
+    /// f64 to a map of pdfs, one frame at a time from the previous frame's means.
+    #[test]
+    fn engine_equals_plain_per_ray_updates() {
+        use crate::rays::Rays;
+        use std::collections::HashMap;
+        let k = 21;
+        let mut engine = CrmEngine::new(0.05, Default::default(), CrmParams { particles: k }).unwrap();
+        let noise = default_noise_model();
+        let grid: Vec<f64> = (0..k).map(|j| j as f64 / (k - 1) as f64).collect();
+        let mut plain: HashMap<VoxelKey, Vec<f64>> = HashMap::new();
+        let mean = |p: &[f64]| p.iter().zip(&grid).map(|(a, m)| a * m).sum::<f64>();
+        let mut frames = wall_frames(6, 0.07);
+        // Oblique views too, so rays cross each other's windows.
+        for (i, f) in frames.iter_mut().enumerate() {
+            f.pose = crate::frames::look_at([0.0, 0.1 * i as f64, 0.05].into(), [1.0, 0.0, 0.0].into()).unwrap();
+        }
+        for f in &frames {
+            engine.integrate(f).unwrap();
+            let means: HashMap<VoxelKey, f64> = plain.iter().map(|(key, p)| (*key, mean(p))).collect();
+            let rays = Rays::of_frame(f);
+            let mut updates: Vec<(VoxelKey, f64, f64)> = Vec::new();
+            for v in 0..rays.rows() {
+                for ray in rays.row(v) {
+                    let seg = RayLimits::default().forward_model_segment(&ray, &noise).unwrap();
+                    let cs = crate::rays::crossings(ray.origin, ray.dir, seg.start, seg.end, 0.05);
+                    let z = ray.range * ray.cz;
+                    let m: Vec<f64> = cs.iter().map(|c| *means.get(&c.key).unwrap_or(&0.5)).collect();
+                    let nu: Vec<f64> = cs
+                        .iter()
+                        .map(|c| noise.likelihood_over(ray.u, ray.v, c.s_in * ray.cz, c.s_out * ray.cz, z))
+                        .collect();
+                    let z_end = seg.end * ray.cz;
+                    let beyond = noise.likelihood_over(ray.u, ray.v, z_end, z_end + 0.05 * ray.cz, z);
+                    let mut f = Vec::new();
+                    crm_ray_factors(&m, &nu, beyond, &mut f);
+                    updates.extend(cs.iter().zip(&f).map(|(c, (a, b))| (c.key, *a, *b)));
+                }
+            }
+            for (key, a, b) in updates {
+                let p = plain.entry(key).or_insert_with(|| vec![1.0 / k as f64; k]);
+                p.iter_mut().zip(&grid).for_each(|(pj, m)| *pj *= a * m + b);
+                let sum: f64 = p.iter().sum();
+                p.iter_mut().for_each(|pj| *pj /= sum);
+            }
+        }
+        assert_eq!(engine.voxel_count(), plain.len());
+        let mut worst = 0.0f64;
+        for (key, p) in &plain {
+            let (m, var) = engine.mean_variance(*key).unwrap();
+            let pm = mean(p);
+            let pvar = p.iter().zip(&grid).map(|(a, x)| a * (x - pm) * (x - pm)).sum::<f64>();
+            worst = worst.max((m - pm).abs()).max((var - pvar).abs());
+        }
+        assert!(worst < 1e-4, "largest difference in mean or variance: {worst}");
     }
 
     #[test]

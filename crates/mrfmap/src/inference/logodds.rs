@@ -19,9 +19,9 @@ use rustc_hash::FxHashMap;
 
 use super::{Engine, logit, sigmoid};
 use crate::error::{Error, Result};
-use crate::frames::Frame;
+use crate::frames::{Frame, RangeScan};
 use crate::map::{BrickKey, Grid, Map, MapVoxel, SlotMask, VoxelKey, mask_slots};
-use crate::rays::{FrameRays, PixelRay, RayLimits, for_each_crossing};
+use crate::rays::{PixelRay, RayLimits, Rays, for_each_crossing};
 
 /// How one ray changes the voxels it crosses (occupancy probabilities, turned into log-odds).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -153,9 +153,16 @@ impl LogOddsEngine {
         *l = (*l + delta).clamp(min, max);
     }
 
-    fn integrate_hit_miss(&mut self, frame: &Frame, p_hit: f64, p_miss: f64) {
+    fn integrate_rays(&mut self, rays: &Rays) {
+        match self.params.model {
+            SensorModel::HitMiss { p_hit, p_miss } => self.integrate_hit_miss(rays, p_hit, p_miss),
+            SensorModel::Ramp { .. } => self.integrate_ramp(rays),
+        }
+    }
+
+    fn integrate_hit_miss(&mut self, rays: &Rays, p_hit: f64, p_miss: f64) {
         let (hit, miss) = (logit(p_hit) as f32, logit(p_miss) as f32);
-        let marks = ScanMarks::of_frame(frame, self.grid.resolution(), &self.limits);
+        let marks = ScanMarks::of_rays(rays, self.grid.resolution(), &self.limits);
         for (key, m) in marks.bricks {
             let brick = self.grid.brick_or_insert(key);
             for slot in mask_slots(&m.hit) {
@@ -168,13 +175,11 @@ impl LogOddsEngine {
         }
     }
 
-    fn integrate_ramp(&mut self, frame: &Frame) {
+    fn integrate_ramp(&mut self, rays: &Rays) {
         let model = self.params.model;
         let SensorModel::Ramp { r_ramp, r_top, .. } = model else { unreachable!("called for the ramp model") };
         let r = self.grid.resolution();
         let limits = self.limits;
-        let rays = FrameRays::new(frame);
-        let width = frame.depth.width() as u64;
         // Per voxel: (squared distance of the ray from the centre, pixel index, log-odds delta).
         type Best = FxHashMap<VoxelKey, (f64, u64, f32)>;
         let keep_closest = |best: &mut Best, key: VoxelKey, cand: (f64, u64, f32)| {
@@ -189,7 +194,7 @@ impl LogOddsEngine {
                 for ray in rays.row(v) {
                     let z = limits.surface_range(&ray).unwrap_or(f64::INFINITY);
                     let Some(seg) = limits.segment(&ray, 0.5 * r_ramp + r_top) else { continue };
-                    let id = ray.v as u64 * width + ray.u as u64;
+                    let id = rays.ray_id(&ray);
                     for_each_crossing(ray.origin, ray.dir, seg.start, seg.end, r, |c| {
                         let Some(p) = model.ramp_probability(0.5 * (c.s_in + c.s_out), z) else {
                             return ControlFlow::Break(()); // past the plateau: the rest of the ray too
@@ -226,10 +231,12 @@ impl Engine for LogOddsEngine {
     }
 
     fn integrate(&mut self, frame: &Frame) -> Result<()> {
-        match self.params.model {
-            SensorModel::HitMiss { p_hit, p_miss } => self.integrate_hit_miss(frame, p_hit, p_miss),
-            SensorModel::Ramp { .. } => self.integrate_ramp(frame),
-        }
+        self.integrate_rays(&Rays::of_frame(frame));
+        Ok(())
+    }
+
+    fn integrate_scan(&mut self, scan: &RangeScan) -> Result<()> {
+        self.integrate_rays(&Rays::of_scan(scan));
         Ok(())
     }
 
@@ -266,8 +273,7 @@ struct ScanMarks {
 }
 
 impl ScanMarks {
-    fn of_frame(frame: &Frame, resolution: f64, limits: &RayLimits) -> Self {
-        let rays = FrameRays::new(frame);
+    fn of_rays(rays: &Rays, resolution: f64, limits: &RayLimits) -> Self {
         (0..rays.rows())
             .into_par_iter()
             .fold(RowMarker::default, |mut m, v| {

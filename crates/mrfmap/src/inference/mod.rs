@@ -10,9 +10,9 @@
 //! - [`MrfEngine`]: MRFMap's ray Markov random field with loopy belief propagation over
 //!   keyframes (ALGORITHMS.md 5.3); keyframes can be added, removed and re-posed.
 //! - [`CrmEngine`]: confidence-rich mapping, a pdf over occupancy per voxel (mean and
-//!   variance) updated through the sensor cause model (ALGORITHMS.md 5.2). Library only for
-//!   now: at 640x480 it is about 90 times slower per frame than log-odds, too slow for the
-//!   command line's demo; see its module documentation.
+//!   variance) updated through the sensor cause model (ALGORITHMS.md 5.2).
+//!
+//! Log-odds and CRM also take range scans ([`Engine::integrate_scan`]).
 
 mod crm;
 mod logodds;
@@ -26,7 +26,7 @@ pub use logodds::{LogOddsEngine, LogOddsParams, SensorModel};
 pub use mrf::{Allocation, KeyframeId, KeyframeSelection, MU_EPS, MrfEngine, MrfParams, ray_messages};
 
 use crate::error::{Error, Result};
-use crate::frames::Frame;
+use crate::frames::{Frame, RangeScan};
 use crate::map::Map;
 use crate::rays::RayLimits;
 
@@ -48,6 +48,15 @@ pub trait Engine: Send {
     fn resolution(&self) -> f64;
     /// Adds one frame's evidence.
     fn integrate(&mut self, frame: &Frame) -> Result<()>;
+    /// Adds one range scan's evidence (planar lasers, lidars). Engines that work on depth
+    /// images only (the MRF's keyframes) refuse.
+    fn integrate_scan(&mut self, scan: &RangeScan) -> Result<()> {
+        let _ = scan;
+        Err(Error::Invalid(format!(
+            "the {} engine takes depth images only; range scans work with logodds and crm",
+            self.name()
+        )))
+    }
     /// Runs any inference deferred until all frames are in (the MRF's iterations); online
     /// engines have nothing to do.
     fn finish(&mut self) -> Result<()> {
@@ -64,17 +73,20 @@ pub enum EngineKind {
     LogOdds,
     /// [`MrfEngine`] with default [`MrfParams`].
     Mrf,
+    /// [`CrmEngine`].
+    Crm,
 }
 
 impl EngineKind {
     /// All engines, in the order the demo and reports use.
-    pub const ALL: &[EngineKind] = &[EngineKind::LogOdds, EngineKind::Mrf];
+    pub const ALL: &[EngineKind] = &[EngineKind::LogOdds, EngineKind::Mrf, EngineKind::Crm];
 
     /// The name used on the command line and in map files.
     pub fn name(self) -> &'static str {
         match self {
             EngineKind::LogOdds => "logodds",
             EngineKind::Mrf => "mrf",
+            EngineKind::Crm => "crm",
         }
     }
 }
@@ -107,12 +119,20 @@ pub struct EngineConfig {
     pub limits: RayLimits,
     /// Parameters of the MRF engine (ignored by the others).
     pub mrf: MrfParams,
+    /// Parameters of the CRM engine (ignored by the others).
+    pub crm: CrmParams,
 }
 
 impl EngineConfig {
     /// `kind` at `resolution` with no ray limits and default engine parameters.
     pub fn new(kind: EngineKind, resolution: f64) -> Self {
-        EngineConfig { kind, resolution, limits: RayLimits::default(), mrf: MrfParams::default() }
+        EngineConfig {
+            kind,
+            resolution,
+            limits: RayLimits::default(),
+            mrf: MrfParams::default(),
+            crm: CrmParams::default(),
+        }
     }
 }
 
@@ -131,5 +151,6 @@ pub fn new_engine(config: &EngineConfig) -> Result<Box<dyn Engine>> {
             Box::new(LogOddsEngine::new(config.resolution, config.limits, LogOddsParams::default())?)
         }
         EngineKind::Mrf => Box::new(MrfEngine::new(config.resolution, config.limits, config.mrf)?),
+        EngineKind::Crm => Box::new(CrmEngine::new(config.resolution, config.limits, config.crm)?),
     })
 }

@@ -19,4 +19,6 @@ pub use accuracy::{
 };
 pub use canvas::{Canvas, PlotArea, Rgb, nice_step};
 pub use ply::{PlyOptions, PlyVertices, read_ply, write_ply};
-pub use truth::{TruthMetrics, VoxelTruth, mean_sigma, pearson, roc_auc, true_occupancy, truth_metrics, voxel_truths};
+pub use truth::{
+    TruthMetrics, VoxelTruth, mean_sigma, metrics_of, pearson, roc_auc, true_occupancy, truth_metrics, voxel_truths,
+};

@@ -88,9 +88,22 @@ pub fn voxel_truths(map: &Map, scene: &Scene) -> Vec<(VoxelKey, VoxelTruth)> {
         .collect()
 }
 
-/// All metrics of `map` against `scene`.
+/// All metrics of `map` against `scene`, over the map's allocated voxels.
 pub fn truth_metrics(map: &Map, scene: &Scene) -> TruthMetrics {
     let vt: Vec<VoxelTruth> = voxel_truths(map, scene).into_iter().map(|(_, t)| t).collect();
+    metrics_of(&vt)
+}
+
+/// The metrics of any set of voxels (for example every cell of a 2D world, observed or not).
+///
+/// ```
+/// use mrfmap::outputs::{VoxelTruth, metrics_of};
+/// let v = |truth, mean, sigma| VoxelTruth { truth, mean, sigma };
+/// let m = metrics_of(&[v(1.0, 0.9, 0.1), v(0.0, 0.2, 0.3), v(0.0, 0.5, 0.5)]);
+/// assert!((m.mae - (0.1 + 0.2 + 0.5) / 3.0).abs() < 1e-12);
+/// assert_eq!(m.auc, 1.0);
+/// ```
+pub fn metrics_of(vt: &[VoxelTruth]) -> TruthMetrics {
     let n = vt.len();
     let mae = vt.iter().map(|t| t.error().abs()).sum::<f64>() / n.max(1) as f64;
     let scores: Vec<f64> = vt.iter().map(|t| t.mean).collect();

@@ -1,7 +1,10 @@
-//! Rays: from a frame's pixels to world-space rays, and from rays to the voxels they cross.
+//! Rays: from a frame's pixels (or a scan's beams) to world-space rays, and from rays to the
+//! voxels they cross.
 //!
 //! [`FrameRays`] turns each valid depth pixel into a [`PixelRay`] (origin, unit direction,
-//! measured range, and the `cz` that converts range to z-depth for the noise model).
+//! measured range, and the `cz` that converts range to z-depth for the noise model);
+//! [`ScanRays`] does the same for the beams of a [`RangeScan`], and [`Rays`] is either, for
+//! engines that take both.
 //! [`RayLimits`] applies the user's max range and bounding box, and [`for_each_crossing`] walks the
 //! voxels of the resulting segment. Every engine consumes rays through these three pieces.
 
@@ -11,14 +14,14 @@ pub use traversal::{Crossing, crossings, for_each_crossing};
 
 use nalgebra::Matrix3;
 
-use crate::frames::{Camera, Frame, NoiseModel, Pose};
+use crate::frames::{Camera, Frame, NoiseModel, Pose, RangeScan};
 
-/// A world-space ray through one valid depth pixel.
+/// A world-space ray through one valid depth pixel (or one beam of a range scan).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct PixelRay {
-    /// Pixel column.
+    /// Pixel column (beam index for scans).
     pub u: u32,
-    /// Pixel row.
+    /// Pixel row (0 for scans).
     pub v: u32,
     /// Camera centre in the world frame.
     pub origin: [f64; 3],
@@ -26,8 +29,12 @@ pub struct PixelRay {
     pub dir: [f64; 3],
     /// Range (metres along `dir`) to the measured surface.
     pub range: f64,
-    /// z component of the unit ray in the camera frame: z-depth = range * cz.
+    /// z component of the unit ray in the camera frame: z-depth = range * cz (1 for scans,
+    /// whose noise model is in range).
     pub cz: f64,
+    /// `false` for a scan beam with no return: `range` is then the sensor's maximum range,
+    /// and the ray only says the space up to it is free.
+    pub returned: bool,
 }
 
 /// Unit world direction of pixel `(u, v)` for a camera with rotation `rotation` (camera to
@@ -75,13 +82,101 @@ impl<'a> FrameRays<'a> {
             }
             let u = u as u32;
             let (dir, norm) = pixel_direction(cam, &self.rotation, u, v);
-            Some(PixelRay { u, v, origin: self.origin, dir, range: z as f64 * norm, cz: 1.0 / norm })
+            Some(PixelRay { u, v, origin: self.origin, dir, range: z as f64 * norm, cz: 1.0 / norm, returned: true })
         })
     }
 
     /// The measured surface point of a ray in world coordinates.
     pub fn endpoint(ray: &PixelRay) -> [f64; 3] {
         [0, 1, 2].map(|a| ray.origin[a] + ray.range * ray.dir[a])
+    }
+}
+
+/// Ray generator for a range scan: beams in order, in rows of [`ScanRays::ROW`] beams (the
+/// unit of parallel work).
+pub struct ScanRays<'a> {
+    scan: &'a RangeScan,
+    rotation: Matrix3<f64>,
+    origin: [f64; 3],
+}
+
+impl<'a> ScanRays<'a> {
+    /// Beams per row.
+    pub const ROW: usize = 64;
+
+    /// Rays of `scan`.
+    pub fn new(scan: &'a RangeScan) -> Self {
+        let (rotation, origin) = pose_parts(&scan.pose);
+        ScanRays { scan, rotation, origin }
+    }
+
+    /// Number of rows.
+    pub fn rows(&self) -> u32 {
+        self.scan.beams.len().div_ceil(Self::ROW) as u32
+    }
+
+    /// Rays of row `v`; beam `k` has `u = k`, `v = 0`.
+    pub fn row(&self, v: u32) -> impl Iterator<Item = PixelRay> + '_ {
+        let start = v as usize * Self::ROW;
+        let end = (start + Self::ROW).min(self.scan.beams.len());
+        self.scan.beams[start.min(end)..end].iter().enumerate().map(move |(k, b)| {
+            let d = self.rotation * nalgebra::Vector3::from(b.dir);
+            PixelRay {
+                u: (start + k) as u32,
+                v: 0,
+                origin: self.origin,
+                dir: [d.x, d.y, d.z],
+                range: b.range.unwrap_or(self.scan.max_range),
+                cz: 1.0,
+                returned: b.range.is_some(),
+            }
+        })
+    }
+}
+
+/// The rays of either kind of reading.
+pub enum Rays<'a> {
+    /// A depth image.
+    Image(FrameRays<'a>),
+    /// A range scan.
+    Scan(ScanRays<'a>),
+}
+
+impl<'a> Rays<'a> {
+    /// Rays of a depth frame.
+    pub fn of_frame(frame: &'a Frame) -> Self {
+        Rays::Image(FrameRays::new(frame))
+    }
+
+    /// Rays of a range scan.
+    pub fn of_scan(scan: &'a RangeScan) -> Self {
+        Rays::Scan(ScanRays::new(scan))
+    }
+
+    /// Number of rows (units of parallel work).
+    pub fn rows(&self) -> u32 {
+        match self {
+            Rays::Image(r) => r.rows(),
+            Rays::Scan(r) => r.rows(),
+        }
+    }
+
+    /// Rays of row `v`, in order.
+    pub fn row(&self, v: u32) -> impl Iterator<Item = PixelRay> + '_ {
+        let (image, scan) = match self {
+            Rays::Image(r) => (Some(r.row(v)), None),
+            Rays::Scan(r) => (None, Some(r.row(v))),
+        };
+        image.into_iter().flatten().chain(scan.into_iter().flatten())
+    }
+
+    /// A number unique to each ray of the reading, increasing in ray order (pixel index,
+    /// beam index): tie-breaks that must not depend on thread scheduling use it.
+    pub fn ray_id(&self, ray: &PixelRay) -> u64 {
+        match self {
+            Rays::Image(r) => ray.v as u64 * r.frame.depth.width() as u64 + ray.u as u64,
+            Rays::Scan(_) => ray.u as u64,
+        }
     }
 }
 
@@ -183,7 +278,7 @@ impl RayLimits {
     /// Range of the ray's measured surface, `None` when it lies beyond the max range (the
     /// reading then only says "free up to max range").
     pub fn surface_range(&self, ray: &PixelRay) -> Option<f64> {
-        (self.max_range.is_none_or(|m| ray.range <= m)).then_some(ray.range)
+        (ray.returned && self.max_range.is_none_or(|m| ray.range <= m)).then_some(ray.range)
     }
 
     /// The segment the forward-model engines (MRF, CRM) use: from the camera to 3 std beyond
@@ -201,7 +296,7 @@ impl RayLimits {
     ///
     /// ```
     /// use mrfmap::rays::{RayLimits, PixelRay};
-    /// let ray = PixelRay { u: 0, v: 0, origin: [0.0; 3], dir: [1.0, 0.0, 0.0], range: 5.0, cz: 1.0 };
+    /// let ray = PixelRay { u: 0, v: 0, origin: [0.0; 3], dir: [1.0, 0.0, 0.0], range: 5.0, cz: 1.0, returned: true };
     /// let limits = RayLimits { max_range: Some(3.0), bounds: None };
     /// let seg = limits.segment(&ray, 0.0).unwrap();
     /// assert_eq!((seg.start, seg.end, seg.hits_surface), (0.0, 3.0, false));
@@ -211,7 +306,8 @@ impl RayLimits {
             (Some(z), m) => {
                 Segment { start: 0.0, end: m.map_or(z + extra, |m| (z + extra).min(m.max(z))), hits_surface: true }
             }
-            (None, m) => Segment { start: 0.0, end: m.expect("no surface only with a max range"), hits_surface: false },
+            // Beyond the max range, or a beam with no return (free up to the sensor's range).
+            (None, m) => Segment { start: 0.0, end: m.map_or(ray.range, |m| m.min(ray.range)), hits_surface: false },
         };
         if let Some(b) = &self.bounds {
             let (a, e) = b.clip(ray.origin, ray.dir, seg.start, seg.end)?;
@@ -235,7 +331,15 @@ mod tests {
     fn bounds_clip_and_drop_surfaces_outside() {
         let b = Aabb::new([0.0, -1.0, -1.0], [2.0, 1.0, 1.0]).unwrap();
         let limits = RayLimits { max_range: None, bounds: Some(b) };
-        let ray = |range| PixelRay { u: 0, v: 0, origin: [-1.0, 0.0, 0.0], dir: [1.0, 0.0, 0.0], range, cz: 1.0 };
+        let ray = |range| PixelRay {
+            u: 0,
+            v: 0,
+            origin: [-1.0, 0.0, 0.0],
+            dir: [1.0, 0.0, 0.0],
+            range,
+            cz: 1.0,
+            returned: true,
+        };
         let s = limits.segment(&ray(2.0), 0.0).unwrap();
         assert_eq!((s.start, s.end, s.hits_surface), (1.0, 2.0, true));
         let s = limits.segment(&ray(5.0), 0.0).unwrap();
@@ -249,9 +353,32 @@ mod tests {
         let n = (dir[0] * dir[0] + dir[1] * dir[1] + dir[2] * dir[2]).sqrt();
         let dir = dir.map(|d| d / n);
         let range = 2.0 / -dir[2]; // reaches z = 0 (up to rounding)
-        let ray = PixelRay { u: 0, v: 0, origin, dir, range, cz: 1.0 };
+        let ray = PixelRay { u: 0, v: 0, origin, dir, range, cz: 1.0, returned: true };
         assert!(limits.segment(&ray, 0.0).unwrap().hits_surface);
         assert!(Aabb::parse("0,0,0,1,1").is_err());
+    }
+
+    #[test]
+    fn scan_rays_and_no_return_segments() {
+        use crate::frames::{Pose, RangeScan};
+        let pose = Pose::translation(1.0, 2.0, 0.5);
+        let ranges: Vec<Option<f64>> = (0..100).map(|k| (k % 3 != 0).then_some(0.5 + k as f64 * 0.01)).collect();
+        let scan = RangeScan::planar(0, pose, &ranges, 3.0, None).unwrap();
+        let rays = Rays::of_scan(&scan);
+        assert_eq!(rays.rows(), 2);
+        let all: Vec<PixelRay> = (0..rays.rows()).flat_map(|v| rays.row(v).collect::<Vec<_>>()).collect();
+        assert_eq!(all.len(), 100);
+        for (k, ray) in all.iter().enumerate() {
+            assert_eq!((ray.u as usize, rays.ray_id(ray)), (k, k as u64));
+            assert_eq!(ray.origin, [1.0, 2.0, 0.5]);
+            assert_eq!(ray.returned, ranges[k].is_some());
+            let seg = RayLimits::default().segment(ray, 0.0).unwrap();
+            assert_eq!(seg.hits_surface, ray.returned);
+            assert_eq!(seg.end, ranges[k].unwrap_or(3.0));
+            // A max range shorter than the sensor's cuts both kinds.
+            let cut = RayLimits { max_range: Some(1.0), bounds: None }.segment(ray, 0.0).unwrap();
+            assert_eq!(cut.end, seg.end.min(1.0));
+        }
         assert!(Aabb::parse("0,0,0,-1,1,1").is_err());
     }
 }

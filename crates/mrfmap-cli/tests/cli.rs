@@ -143,6 +143,26 @@ fn simulate_build_info_export() {
     let o = run(&["info", s(&mrf)]);
     assert!(stdout(&o).contains("engine:      mrf") && stdout(&o).contains("keyframes = 4"), "{}", stdout(&o));
 
+    // The CRM engine: mean and variance, exported to PLY; the box face is occupied.
+    let crm = dir.join("crm.mrfmap");
+    let args = ["build", s(&data), "-o", s(&crm), "--resolution", "0.05", "--engine", "crm", "--particles", "15", "-q"];
+    let o = run(&args);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let o = run(&["info", s(&crm)]);
+    assert!(stdout(&o).contains("engine:      crm") && stdout(&o).contains("particles = 15"), "{}", stdout(&o));
+    let crm_map = mrfmap::map::Map::load(&crm).unwrap();
+    let face =
+        [-0.32, -0.29, -0.26].iter().filter_map(|x| crm_map.occupancy_at([*x, 0.02, 0.3])).fold(0.0f32, f32::max);
+    assert!(crm_map.has_variance && face > 0.5, "CRM box face occupancy {face}");
+    let ply = dir.join("crm.ply");
+    let o = run(&["export", s(&crm), "--ply", s(&ply)]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let v = mrfmap::outputs::read_ply(&ply).unwrap();
+    let var = v.column("variance").expect("CRM exports variance");
+    assert!(v.rows.iter().all(|r| (0.0..=0.25).contains(&r[var])));
+    let o = run(&[&args[..6], &["--engine", "crm", "--particles", "1"]].concat());
+    assert!(!o.status.success() && stderr(&o).contains("particles"), "{}", stderr(&o));
+
     // Bounds, frames, max range and threads are accepted.
     let o = run(&[
         "build",

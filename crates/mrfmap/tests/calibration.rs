@@ -1,7 +1,7 @@
 //! Calibration round trip: simulate a sensor whose bias and noise vary across the image,
 //! learn them back from (noisy, exact) image pairs, compare with the truth patch by patch.
 
-use mrfmap::frames::{CalibrationOptions, Calibrator, Camera, NoiseModel, PatchModel, Poly, look_at};
+use mrfmap::frames::{CalibrationOptions, Calibrator, Camera, NoiseModel, PatchFit, PatchModel, Poly, look_at};
 use mrfmap::source::{Scene, Shape};
 use nalgebra::Vector3;
 
@@ -49,7 +49,7 @@ fn per_patch_polynomials_round_trip() {
         cal.add(&scene.add_noise(&exact, 11, i), &exact).unwrap();
     }
     let out = cal.finish().unwrap();
-    assert!(out.fitted.iter().all(|&f| f), "every patch has data");
+    assert!(out.fits.iter().all(|&f| f == PatchFit::Fitted), "every patch has data");
     let learnt = out.model.patches.as_ref().unwrap();
     assert_eq!((learnt.rows, learnt.cols, learnt.size), (6, 8, 20));
     let (mut worst_bias, mut worst_std) = (0.0f64, 0.0f64);
@@ -93,7 +93,7 @@ fn coffin_world_model_is_recovered() {
     let mut bias_err = Vec::new();
     let mut std_err = Vec::new();
     for (i, bins) in out.bins.iter().enumerate() {
-        if !out.fitted[i] {
+        if out.fits[i] == PatchFit::Aggregate {
             continue;
         }
         let (u, v) = ((i as u32 % patches.cols) * 20 + 10, (i as u32 / patches.cols) * 20 + 10);
@@ -107,9 +107,10 @@ fn coffin_world_model_is_recovered() {
     bias_err.sort_by(f64::total_cmp);
     std_err.sort_by(f64::total_cmp);
     let pct = |v: &[f64], q: f64| v[((v.len() - 1) as f64 * q) as usize];
-    let n = out.fitted.iter().filter(|&&f| f).count();
+    let n = out.fits.iter().filter(|&&f| f == PatchFit::Fitted).count();
+    let adjusted = out.fits.iter().filter(|&&f| f == PatchFit::Adjusted).count();
     println!(
-        "{n} patches fitted; over their bins: |bias error| median {:.2} mm, p90 {:.2} mm; \
+        "{n} patches fitted, {adjusted} adjusted; over their bins: |bias error| median {:.2} mm, p90 {:.2} mm; \
          std error median {:.1}%, p90 {:.1}%",
         pct(&bias_err, 0.5) * 1e3,
         pct(&bias_err, 0.9) * 1e3,

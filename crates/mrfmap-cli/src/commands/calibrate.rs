@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 use mrfmap::atomic_file::write_atomic;
-use mrfmap::frames::{CalibrationOptions, Calibrator, Camera, NoiseModel};
+use mrfmap::frames::{CalibrationOptions, Calibrator, Camera, NoiseModel, PatchFit};
 use mrfmap::source::read_depth_png;
 
 #[derive(clap::Args)]
@@ -116,10 +116,10 @@ pub fn run(a: Args) -> Result<()> {
     let result = calibrator.finish().map_err(anyhow::Error::msg)?;
     let patches = result.model.patches.as_ref().expect("calibration always fits patches");
     let fallback: Vec<String> = result
-        .fitted
+        .fits
         .iter()
         .enumerate()
-        .filter(|&(_, &f)| !f)
+        .filter(|&(_, &f)| f == PatchFit::Aggregate)
         .map(|(i, _)| format!("({}, {})", i as u32 / patches.cols, i as u32 % patches.cols))
         .collect();
     let mut model = result.model.clone();
@@ -136,11 +136,13 @@ pub fn run(a: Args) -> Result<()> {
         100.0 * result.outliers as f64 / result.samples.max(1) as f64
     );
     println!(
-        "patches: {} x {} of {} px, {} fitted, {} fell back to the aggregate{}",
+        "patches: {} x {} of {} px, {} fitted, {} adjusted (aggregate shifted and scaled to their few depth bins), \
+         {} without data use the aggregate{}",
         patches.rows,
         patches.cols,
         patches.size,
-        result.fitted.iter().filter(|&&f| f).count(),
+        result.fits.iter().filter(|&&f| f == PatchFit::Fitted).count(),
+        result.fits.iter().filter(|&&f| f == PatchFit::Adjusted).count(),
         fallback.len(),
         if fallback.is_empty() {
             String::new()

@@ -10,8 +10,11 @@
 //! 3. fits the bias polynomial to the means and the std polynomial to the standard deviations
 //!    by weighted least squares, each bin weighted by the inverse variance of its estimate
 //!    (`n / s^2` for a mean, `2n / s^2` for a standard deviation),
-//! 4. sets the aggregate to the coefficient-wise median over the fitted patches, and gives it
-//!    to patches with too little data (fewer than `degree + 2` populated bins).
+//! 4. sets the aggregate to the coefficient-wise median over the fitted patches;
+//! 5. patches with too few populated bins for their own polynomials (fewer than `degree + 2`)
+//!    but some data get the aggregate *adjusted* to their bins: its bias shifted by their
+//!    weighted mean offset, its std scaled by their weighted mean ratio. Patches with no data
+//!    get the aggregate as it is.
 //!
 //! Memory is bounded: each (patch, bin) cell keeps at most [`RESERVOIR`] residuals, a uniform
 //! sample of everything it saw (reservoir sampling, seeded, so results are reproducible).
@@ -87,14 +90,24 @@ pub struct BinStats {
     pub count: usize,
 }
 
+/// How a patch's polynomials were obtained.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PatchFit {
+    /// Fitted to its own bins.
+    Fitted,
+    /// The aggregate, shifted (bias) and scaled (std) to match its few bins.
+    Adjusted,
+    /// No data: the aggregate.
+    Aggregate,
+}
+
 /// What a calibration produced.
 #[derive(Clone, Debug)]
 pub struct Calibration {
     /// The learnt model: aggregate plus one pair of polynomials per patch.
     pub model: NoiseModel,
-    /// Per patch (row-major): `true` if fitted from its own data, `false` if it fell back to
-    /// the aggregate.
-    pub fitted: Vec<bool>,
+    /// Per patch (row-major): how its polynomials were obtained.
+    pub fits: Vec<PatchFit>,
     /// Per patch: the bins used (populated bins only).
     pub bins: Vec<Vec<BinStats>>,
     /// Valid pixel pairs seen (both depths valid, true depth in range).
@@ -240,6 +253,25 @@ impl Calibrator {
             Poly(c)
         };
         let aggregate = (median_poly(|f| f.0), median_poly(|f| f.1));
+        let mut kinds = Vec::with_capacity(fits.len());
+        let polys: Vec<(Poly, Poly)> = fits
+            .iter()
+            .zip(&all_bins)
+            .map(|(fit, bins)| match fit {
+                Some(f) => {
+                    kinds.push(PatchFit::Fitted);
+                    *f
+                }
+                None if !bins.is_empty() => {
+                    kinds.push(PatchFit::Adjusted);
+                    adjust(aggregate, bins)
+                }
+                None => {
+                    kinds.push(PatchFit::Aggregate);
+                    aggregate
+                }
+            })
+            .collect();
         let model = NoiseModel {
             bias: aggregate.0,
             std: aggregate.1,
@@ -247,19 +279,34 @@ impl Calibrator {
                 size: o.patch,
                 rows,
                 cols,
-                bias: fits.iter().map(|f| f.unwrap_or(aggregate).0).collect(),
-                std: fits.iter().map(|f| f.unwrap_or(aggregate).1).collect(),
+                bias: polys.iter().map(|p| p.0).collect(),
+                std: polys.iter().map(|p| p.1).collect(),
             }),
         };
-        Ok(Calibration {
-            model,
-            fitted: fits.iter().map(Option::is_some).collect(),
-            bins: all_bins,
-            samples: self.samples,
-            outliers,
-            images: self.images,
-        })
+        Ok(Calibration { model, fits: kinds, bins: all_bins, samples: self.samples, outliers, images: self.images })
     }
+}
+
+/// The aggregate `(bias, std)` shifted and scaled to a patch's few bins: bias offset by the
+/// bins' mean residual minus the aggregate bias (weights `n / s^2`), std scaled by the mean
+/// ratio of the bins' std to the aggregate's (weights `n`).
+fn adjust((bias, std): (Poly, Poly), bins: &[BinStats]) -> (Poly, Poly) {
+    let (mut wo, mut so, mut wr, mut sr) = (0.0, 0.0, 0.0, 0.0);
+    for b in bins {
+        let w = b.count as f64 / (b.std * b.std).max(1e-12);
+        wo += w;
+        so += w * (b.mean - bias.eval(b.depth));
+        let agg = std.eval(b.depth);
+        if agg > 0.0 {
+            wr += b.count as f64;
+            sr += b.count as f64 * b.std / agg;
+        }
+    }
+    let offset = if wo > 0.0 { so / wo } else { 0.0 };
+    let scale = if wr > 0.0 { sr / wr } else { 1.0 };
+    let mut b = bias;
+    b.0[0] += offset;
+    (b, Poly(std.0.map(|c| c * scale)))
 }
 
 /// Median of `v` (reorders it); `v` must not be empty.
@@ -368,7 +415,7 @@ mod tests {
             cal.add(&DepthImage::from_vec(16, 16, noisy).unwrap(), &truth).unwrap();
         }
         let out = cal.finish().unwrap();
-        assert_eq!(out.fitted, vec![true; 4]);
+        assert_eq!(out.fits, vec![PatchFit::Fitted; 4]);
         assert!(out.outliers > 0);
         for z in [1.0, 2.0, 3.0] {
             let (b, s) = out.model.bias_std(12, 3, z);

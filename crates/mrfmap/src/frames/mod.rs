@@ -13,7 +13,7 @@ mod scan;
 
 use std::sync::Arc;
 
-pub use calibration::{BinStats, Calibration, CalibrationOptions, Calibrator, RESERVOIR, weighted_polyfit};
+pub use calibration::{BinStats, Calibration, CalibrationOptions, Calibrator, PatchFit, RESERVOIR, weighted_polyfit};
 pub use camera::Camera;
 pub use depth::DepthImage;
 pub use noise::{NoiseModel, PatchModel, Poly, STD_FLOOR, erfc, normal_mass};

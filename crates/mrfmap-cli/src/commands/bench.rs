@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Result;
-use mrfmap::inference::{EngineConfig, EngineKind, MrfEngine, MrfParams, new_engine};
+use mrfmap::inference::{CrmParams, EngineConfig, EngineKind, MrfEngine, MrfParams, new_engine};
 use mrfmap::source::Dataset;
 
 #[derive(clap::Args)]
@@ -25,6 +25,9 @@ pub struct Args {
     /// (already inferred) and running 3 iterations over all keyframes.
     #[arg(long)]
     incremental: bool,
+    /// CRM only: particles per voxel.
+    #[arg(long, default_value_t = 101)]
+    particles: usize,
 }
 
 /// Time to add the last frame to an inferred MRF of the others and run 3 iterations.
@@ -68,7 +71,9 @@ pub fn run(a: Args) -> Result<()> {
         let mut best = f64::INFINITY;
         let mut last = None;
         for _ in 0..a.repeat.max(1) {
-            let mut engine = new_engine(&EngineConfig::new(kind, resolution))?;
+            let config =
+                EngineConfig { crm: CrmParams { particles: a.particles }, ..EngineConfig::new(kind, resolution) };
+            let mut engine = new_engine(&config)?;
             let t = Instant::now();
             for f in &frames {
                 engine.integrate(f)?;

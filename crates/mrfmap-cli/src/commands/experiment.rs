@@ -137,6 +137,10 @@ fn sweep() -> Vec<SensorModel> {
 struct Row {
     method: Method,
     metrics: TruthMetrics,
+    /// Cells the method observed (allocated in its map).
+    observed: usize,
+    /// Metrics over the observed cells only.
+    observed_metrics: TruthMetrics,
     seconds: f64,
     cells: Vec<VoxelTruth>,
 }
@@ -149,8 +153,22 @@ fn evaluate(method: Method, world: &GridWorld, scans: &[RangeScan], repeat: u32)
         best = best.min(t);
         map = Some(m);
     }
-    let cells = cells(world, &map.expect("at least one run"), &method);
-    Ok(Row { method, metrics: metrics_of(&cells), seconds: best, cells })
+    let map = map.expect("at least one run");
+    let cells = cells(world, &map, &method);
+    let seen: Vec<VoxelTruth> = (0..world.height)
+        .flat_map(|y| (0..world.width).map(move |x| (x, y)))
+        .zip(&cells)
+        .filter(|((x, y), _)| map.voxels.get(world.key(*x, *y)).is_some())
+        .map(|(_, t)| *t)
+        .collect();
+    Ok(Row {
+        method,
+        metrics: metrics_of(&cells),
+        observed: seen.len(),
+        observed_metrics: metrics_of(&seen),
+        seconds: best,
+        cells,
+    })
 }
 
 fn crm_2d(a: Crm2dArgs) -> Result<()> {
@@ -205,8 +223,11 @@ fn crm_2d(a: Crm2dArgs) -> Result<()> {
     }
     let _ = writeln!(report, "\n|---|---|{}", "---|".repeat(table.len()));
     type Metric = (&'static str, fn(&Row) -> f64, usize);
-    let metrics: [Metric; 5] = [
+    let metrics: [Metric; 8] = [
+        ("observed cells", |r| r.observed as f64, 0),
         ("MAE", |r| r.metrics.mae, 3),
+        ("MAE, observed cells", |r| r.observed_metrics.mae, 3),
+        ("I_c (gamma 0.5), observed cells", |r| r.observed_metrics.ic_half, 1),
         ("AUC", |r| r.metrics.auc, 3),
         ("I_c (gamma 0.5)", |r| r.metrics.ic_half, 1),
         ("PCC(sigma, abs error)", |r| r.metrics.pearson_sigma_error, 3),

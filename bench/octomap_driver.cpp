@@ -70,7 +70,7 @@ static std::vector<uint16_t> read_png16(const std::string& path, int w, int h) {
 
 int main(int argc, char** argv) {
   if (argc < 3) {
-    std::cerr << "usage: octomap_driver DATASET RESOLUTION [REPEAT]\n";
+    std::cerr << "usage: octomap_driver DATASET RESOLUTION [REPEAT [OUT.bt]]\n";
     return 2;
   }
   std::string root = argv[1];
@@ -114,8 +114,9 @@ int main(int argc, char** argv) {
   }
   double best = 1e300;
   size_t occupied = 0, leaves = 0;
+  octomap::OcTree tree(res);
   for (int r = 0; r < repeat; r++) {
-    octomap::OcTree tree(res);
+    tree.clear();
     auto t0 = std::chrono::steady_clock::now();
     for (size_t k = 0; k < clouds.size(); k++) tree.insertPointCloud(clouds[k], origins[k], -1.0);
     double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
@@ -130,5 +131,10 @@ int main(int argc, char** argv) {
     }
   }
   std::printf("%g\t%.2f\t%zu\t%zu\n", res, best * 1e3 / clouds.size(), occupied, leaves);
+  // Optionally OctoMap's own map of the frames, for comparing exported files.
+  if (argc > 4 && !tree.writeBinary(argv[4])) {
+    std::cerr << "cannot write " << argv[4] << "\n";
+    return 1;
+  }
   return 0;
 }

@@ -387,3 +387,41 @@ fn calibrate_and_plot_noise() {
     let o = run(&["calibrate", "--measured", s(&data), "--truth", s(&gt), "-o", s(&fresh)]);
     assert!(stderr(&o).contains("--depth-scale"), "{}", stderr(&o));
 }
+
+/// `export --bt/--ot`: read back by our reader always, and by OctoMap's own `convert_octree`
+/// (Debian's octomap-tools) where it is installed.
+#[test]
+fn octomap_export() {
+    let dir = workdir("octomap");
+    let data = dataset(&dir);
+    let map = dir.join("m.mrfmap");
+    let o = run(&["build", s(&data), "-o", s(&map), "--resolution", "0.05", "-q"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let (bt, ot) = (dir.join("m.bt"), dir.join("m.ot"));
+    let o = run(&["export", s(&map), "--bt", s(&bt), "--ot", s(&ot)]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let loaded = mrfmap::map::Map::load(&map).unwrap();
+    let ours_bt = mrfmap::outputs::read_octomap(&bt).unwrap();
+    let ours_ot = mrfmap::outputs::read_octomap(&ot).unwrap();
+    assert_eq!(ours_ot.leaves.len(), loaded.voxels.len());
+    let occupied: usize = ours_bt.leaves.iter().filter(|l| l.value > 0.0).map(|l| l.voxels().count()).sum();
+    assert_eq!(occupied, loaded.occupied_count());
+
+    let o = run(&["export", s(&map)]);
+    assert!(!o.status.success() && stderr(&o).contains("--ply"), "{}", stderr(&o));
+
+    let Ok(out) = Command::new("convert_octree").arg(&bt).arg(dir.join("from_bt.ot")).output() else {
+        println!("skipped the OctoMap check: convert_octree (Debian's octomap-tools) is not installed");
+        return;
+    };
+    let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(!text.contains("ERROR"), "OctoMap refused our .bt: {text}");
+    let theirs = mrfmap::outputs::read_octomap(&dir.join("from_bt.ot")).unwrap();
+    assert_eq!(theirs.nodes, ours_bt.nodes, "OctoMap read the same tree");
+    let theirs_occupied: usize = theirs.leaves.iter().filter(|l| l.value > 0.0).map(|l| l.voxels().count()).sum();
+    assert_eq!(theirs_occupied, occupied);
+    let out = Command::new("convert_octree").arg(&ot).arg(dir.join("from_ot.ot")).output().unwrap();
+    let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(!text.contains("ERROR") && text.contains(&format!("Done ({} nodes)", ours_ot.nodes)), "{text}");
+    assert_eq!(mrfmap::outputs::read_octomap(&dir.join("from_ot.ot")).unwrap(), ours_ot);
+}

@@ -1,30 +1,45 @@
-//! `mrfmap export`: map file to PLY.
+//! `mrfmap export`: map file to PLY and OctoMap files.
 
 use std::path::PathBuf;
 
 use anyhow::Result;
 use mrfmap::map::Map;
-use mrfmap::outputs::{PlyOptions, write_ply};
+use mrfmap::outputs::{OctomapFormat, PlyOptions, write_octomap, write_ply};
 
 #[derive(clap::Args)]
+#[command(group = clap::ArgGroup::new("outputs").required(true).multiple(true).args(["ply", "bt", "ot"]))]
 pub struct Args {
     /// Map file written by `mrfmap build`.
     map: PathBuf,
     /// Write a binary PLY of voxel centres with occupancy (and variance).
-    #[arg(long, required = true)]
-    ply: PathBuf,
-    /// Only voxels with occupancy above 0.5.
+    #[arg(long)]
+    ply: Option<PathBuf>,
+    /// PLY: only voxels with occupancy above 0.5.
     #[arg(long)]
     occupied_only: bool,
+    /// Write an OctoMap `.bt` (occupied / free, pruned; octovis, RViz).
+    #[arg(long)]
+    bt: Option<PathBuf>,
+    /// Write an OctoMap `.ot` (log-odds per node).
+    #[arg(long)]
+    ot: Option<PathBuf>,
 }
 
 pub fn run(a: Args) -> Result<()> {
     let map = Map::load(&a.map)?;
-    let options = if a.occupied_only { PlyOptions::occupied_only() } else { PlyOptions { min_occupancy: None } };
-    let n = write_ply(&map, &a.ply, options)?;
-    if n == 0 {
-        tracing::warn!("{}: no voxels to export; wrote an empty PLY", a.map.display());
+    if let Some(ply) = &a.ply {
+        let options = if a.occupied_only { PlyOptions::occupied_only() } else { PlyOptions { min_occupancy: None } };
+        let n = write_ply(&map, ply, options)?;
+        if n == 0 {
+            tracing::warn!("{}: no voxels to export; wrote an empty PLY", a.map.display());
+        }
+        println!("{}: {n} voxels", ply.display());
     }
-    println!("{}: {n} voxels", a.ply.display());
+    for (path, format) in [(&a.bt, OctomapFormat::Binary), (&a.ot, OctomapFormat::Full)] {
+        if let Some(path) = path {
+            let s = write_octomap(&map, path, format)?;
+            println!("{}: {} nodes, {} leaves", path.display(), s.nodes, s.leaves);
+        }
+    }
     Ok(())
 }

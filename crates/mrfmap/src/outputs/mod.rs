@@ -1,6 +1,7 @@
 //! Outputs: what leaves the library — exported files, evaluation and pictures.
 //!
 //! - [`write_ply`] / [`read_ply`]: voxel centres with occupancy (and variance) as PLY;
+//! - [`write_octomap`] / [`read_octomap`]: OctoMap `.bt` and `.ot` files;
 //! - [`Scorer`] (and the shorthand [`score_view`]): the MRFMap accuracy metric on held-out views;
 //! - [`truth_metrics`]: MAE, ROC AUC, inconsistency and sigma-error correlation against an
 //!   analytic scene;
@@ -10,6 +11,7 @@
 
 mod accuracy;
 mod canvas;
+mod octomap;
 pub mod pictures;
 mod ply;
 mod truth;
@@ -18,6 +20,7 @@ pub use accuracy::{
     AccuracyParams, PixelClass, ProfileStep, RayVerdict, Scorer, VISIBILITY_FLOOR, ViewScore, score_view,
 };
 pub use canvas::{Canvas, PlotArea, Rgb, nice_step};
+pub use octomap::{OctomapFormat, OctomapLeaf, OctomapSummary, OctomapTree, TREE_DEPTH, read_octomap, write_octomap};
 pub use ply::{PlyOptions, PlyVertices, read_ply, write_ply};
 pub use truth::{
     TruthMetrics, VoxelTruth, mean_sigma, metrics_of, pearson, roc_auc, true_occupancy, truth_metrics, voxel_truths,

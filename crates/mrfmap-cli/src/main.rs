@@ -31,6 +31,8 @@ enum Command {
     Noise(commands::noise::Args),
     /// Export a map to PLY.
     Export(commands::export::Args),
+    /// A PNG picture of a map from a viewpoint, or a slice of it.
+    View(commands::view::Args),
     /// Describe a map file.
     Info(commands::info::Args),
     /// Render an analytic scene file to a dataset.
@@ -66,6 +68,7 @@ fn main() {
             Command::Calibrate(a) => commands::calibrate::run(a),
             Command::Noise(a) => commands::noise::run(a),
             Command::Export(a) => commands::export::run(a),
+            Command::View(a) => commands::view::run(a),
             Command::Info(a) => commands::info::run(a),
             Command::Simulate(a) => commands::simulate::run(a),
             Command::Demo(a) => commands::demo::run(a),

@@ -425,3 +425,40 @@ fn octomap_export() {
     assert!(!text.contains("ERROR") && text.contains(&format!("Done ({} nodes)", ours_ot.nodes)), "{text}");
     assert_eq!(mrfmap::outputs::read_octomap(&dir.join("from_ot.ot")).unwrap(), ours_ot);
 }
+
+#[test]
+fn view_pictures_and_slices() {
+    let dir = workdir("view");
+    let data = dataset(&dir);
+    let map = dir.join("m.mrfmap");
+    let o = run(&["build", s(&data), "-o", s(&map), "--resolution", "0.05", "-q"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let png = dir.join("v.png");
+    let o = run(&["view", s(&map), "-o", s(&png), "--size", "320x240", "--color", "sigma"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(&png).unwrap()));
+    let info = decoder.read_info().unwrap().info().clone();
+    assert_eq!((info.width, info.height), (320, 240));
+    // Looking straight down on the box top (z = 0.6) from above: the centre pixel is a voxel.
+    let o = run(&["view", s(&map), "-o", s(&png), "--eye", "0,0,3", "--target", "0,0.001,0", "--size", "64x48"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let mut reader =
+        png::Decoder::new(std::io::BufReader::new(std::fs::File::open(&png).unwrap())).read_info().unwrap();
+    let mut buf = vec![0; reader.output_buffer_size().unwrap()];
+    reader.next_frame(&mut buf).unwrap();
+    let centre = (24 * 64 + 32) * 3;
+    assert_ne!(&buf[centre..centre + 3], &[255, 255, 255], "the box top is drawn at the centre");
+    let slice = dir.join("s.png");
+    let o = run(&["view", s(&map), "-o", s(&slice), "--slice", "z=0.3"]);
+    assert!(o.status.success() && slice.exists(), "{}", stderr(&o));
+    for (args, needle) in [
+        (vec!["--slice", "w=1"], "axis"),
+        (vec!["--slice", "z=40"], "no voxels at z = 40"),
+        (vec!["--eye", "1,2"], "--eye"),
+        (vec!["--size", "0x10"], "--size"),
+    ] {
+        let bad = dir.join("bad.png");
+        let o = run(&[&["view", s(&map), "-o", s(&bad)][..], &args[..]].concat());
+        assert!(!o.status.success() && stderr(&o).contains(needle) && !bad.exists(), "{args:?}: {}", stderr(&o));
+    }
+}

@@ -12,6 +12,7 @@ pub mod info;
 pub mod loo;
 pub mod noise;
 pub mod simulate;
+pub mod view;
 
 /// clap parser for a strictly positive, finite number (resolution, max range).
 pub fn positive(s: &str) -> Result<f64, String> {

@@ -91,6 +91,22 @@ impl Canvas {
         Canvas { width, height, rgb: vec![255; width as usize * height as usize * 3] }
     }
 
+    /// A canvas from row-major RGB bytes; panics unless there are `width * height * 3`.
+    pub fn from_rgb(width: u32, height: u32, rgb: Vec<u8>) -> Self {
+        assert_eq!(rgb.len(), width as usize * height as usize * 3, "RGB buffer size");
+        Canvas { width, height, rgb }
+    }
+
+    /// Width in pixels.
+    pub fn width(&self) -> u32 {
+        self.width
+    }
+
+    /// Height in pixels.
+    pub fn height(&self) -> u32 {
+        self.height
+    }
+
     /// The colour at `(x, y)` (which must be inside).
     pub fn pixel(&self, x: u32, y: u32) -> Rgb {
         let i = (y as usize * self.width as usize + x as usize) * 3;

@@ -5,6 +5,7 @@
 //! - [`Scorer`] (and the shorthand [`score_view`]): the MRFMap accuracy metric on held-out views;
 //! - [`truth_metrics`]: MAE, ROC AUC, inconsistency and sigma-error correlation against an
 //!   analytic scene;
+//! - [`render_map`] / [`slice_map`]: pictures of a map from a viewpoint, and slices;
 //! - `pictures`: accuracy images, per-ray plots, map slices;
 //! - [`Canvas`] and [`PlotArea`]: raster figures with text (plots of noise models, scaling
 //!   curves) without a font or plotting dependency.
@@ -14,6 +15,7 @@ mod canvas;
 mod octomap;
 pub mod pictures;
 mod ply;
+mod render;
 mod truth;
 
 pub use accuracy::{
@@ -22,6 +24,7 @@ pub use accuracy::{
 pub use canvas::{Canvas, PlotArea, Rgb, nice_step};
 pub use octomap::{OctomapFormat, OctomapLeaf, OctomapSummary, OctomapTree, TREE_DEPTH, read_octomap, write_octomap};
 pub use ply::{PlyOptions, PlyVertices, read_ply, write_ply};
+pub use render::{Colouring, View, render_map, slice_map};
 pub use truth::{
     TruthMetrics, VoxelTruth, mean_sigma, metrics_of, pearson, roc_auc, true_occupancy, truth_metrics, voxel_truths,
 };

@@ -1,0 +1,197 @@
+//! Looking at maps without a viewer: a ray-cast picture of the occupied voxels from any
+//! viewpoint ([`render_map`]), coloured by height, sigma or occupancy, and axis-aligned slices
+//! of occupancy ([`slice_map`]). Both return a [`Canvas`] to save as PNG.
+
+use std::ops::ControlFlow;
+
+use rayon::prelude::*;
+
+use super::canvas::{Canvas, Rgb};
+use super::pictures::viridis;
+use super::truth::mean_sigma;
+use crate::error::{Error, Result};
+use crate::map::{Map, VoxelKey};
+use crate::rays::{Aabb, for_each_crossing};
+
+/// What the colour of a rendered voxel says.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Colouring {
+    /// Height (world z) over the map's range, viridis.
+    Height,
+    /// Standard deviation on [0, 0.5] (the engine's variance, or `sqrt(p (1 - p))`), viridis.
+    Sigma,
+    /// Occupancy on [0.5, 1], viridis.
+    Occupancy,
+}
+
+/// A pinhole view of a map.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct View {
+    /// Camera centre (world, metres).
+    pub eye: [f64; 3],
+    /// Point looked at.
+    pub target: [f64; 3],
+    /// Picture size in pixels.
+    pub width: u32,
+    /// Picture height in pixels.
+    pub height: u32,
+    /// Horizontal field of view in degrees.
+    pub fov_degrees: f64,
+    /// Voxels above this occupancy are drawn.
+    pub threshold: f32,
+    /// Colour scheme.
+    pub colouring: Colouring,
+}
+
+impl View {
+    /// A view of the whole map from above one corner (a third of the way up), 1024x768,
+    /// 60 degrees, occupancy above 0.5, coloured by height. `None` for an empty map.
+    pub fn overview(map: &Map) -> Option<View> {
+        let (lo, hi) = map.bounds()?;
+        let c = [0, 1, 2].map(|a| 0.5 * (lo[a] + hi[a]));
+        let size = (0..3).map(|a| hi[a] - lo[a]).fold(0.0, f64::max);
+        let eye = [c[0] - 0.9 * size, c[1] - 1.2 * size, c[2] + 0.9 * size];
+        Some(View {
+            eye,
+            target: c,
+            width: 1024,
+            height: 768,
+            fov_degrees: 60.0,
+            threshold: 0.5,
+            colouring: Colouring::Height,
+        })
+    }
+}
+
+/// Ray-casts `map` from `view`: each pixel shows the first voxel above the threshold on its
+/// ray, shaded by the face it enters (so shapes read without lighting), white where there is
+/// none.
+///
+/// ```
+/// use mrfmap::map::{Map, MapVoxel, VoxelKey};
+/// use mrfmap::outputs::{View, render_map};
+/// let mut map = Map::new("logodds", 0.1).unwrap();
+/// map.voxels.insert(VoxelKey([0, 0, 0]), MapVoxel { occupancy: 0.9, variance: 0.0 });
+/// let view = View { eye: [0.05, 0.05, 3.0], target: [0.05, 0.05, 0.0], width: 64, height: 48, ..View::overview(&map).unwrap() };
+/// let picture = render_map(&map, &view).unwrap();
+/// assert_ne!(picture.pixel(32, 24), [255, 255, 255]); // the voxel, seen from above
+/// assert_eq!(picture.pixel(0, 0), [255, 255, 255]);
+/// ```
+pub fn render_map(map: &Map, view: &View) -> Result<Canvas> {
+    let (lo, hi) = map.bounds().ok_or_else(|| Error::Invalid("the map is empty: nothing to render".into()))?;
+    let v = view;
+    let sub = |a: [f64; 3], b: [f64; 3]| [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
+    let cross =
+        |a: [f64; 3], b: [f64; 3]| [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
+    let norm = |a: [f64; 3]| {
+        let n = (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
+        (n > 1e-12 && n.is_finite()).then(|| a.map(|x| x / n))
+    };
+    let forward = norm(sub(v.target, v.eye)).ok_or_else(|| Error::Invalid("eye and target coincide".into()))?;
+    let right = norm(cross(forward, [0.0, 0.0, 1.0])).or_else(|| norm(cross(forward, [0.0, 1.0, 0.0]))).expect("unit");
+    let up = cross(right, forward);
+    if !(v.width > 0 && v.height > 0 && v.fov_degrees > 0.0 && v.fov_degrees < 179.0) {
+        return Err(Error::Invalid(format!("bad view: {}x{} pixels, {} degrees", v.width, v.height, v.fov_degrees)));
+    }
+    let focal = 0.5 * v.width as f64 / (0.5 * v.fov_degrees.to_radians()).tan();
+    let r = map.resolution();
+    let bounds = Aabb::new(lo, hi)?;
+    let (zmin, zmax) = (lo[2], hi[2]);
+    let colour_of = |key: VoxelKey| -> Rgb {
+        let voxel = map.voxels.get(key).expect("hit voxels exist");
+        match v.colouring {
+            Colouring::Height => viridis((key.center(r)[2] - zmin) / (zmax - zmin).max(r)),
+            Colouring::Sigma => viridis(mean_sigma(map, voxel).1 / 0.5),
+            Colouring::Occupancy => viridis((voxel.occupancy as f64 - 0.5) / 0.5),
+        }
+    };
+    let w = v.width as usize;
+    let mut rgb = vec![255u8; w * v.height as usize * 3];
+    rgb.par_chunks_mut(w * 3).enumerate().for_each(|(py, row)| {
+        for px in 0..w {
+            let (x, y) =
+                ((px as f64 + 0.5 - 0.5 * w as f64) / focal, (0.5 * v.height as f64 - py as f64 - 0.5) / focal);
+            let Some(dir) = norm([0, 1, 2].map(|a| forward[a] + x * right[a] + y * up[a])) else { continue };
+            let Some((s0, s1)) = bounds.clip(v.eye, dir, 0.0, f64::MAX) else { continue };
+            let mut hit = None;
+            for_each_crossing(v.eye, dir, s0, s1, r, |c| {
+                if map.voxels.get(c.key).is_some_and(|vox| vox.occupancy > v.threshold) {
+                    hit = Some(c);
+                    return ControlFlow::Break(());
+                }
+                ControlFlow::Continue(())
+            });
+            let Some(c) = hit else { continue };
+            // The face the ray entered through: the axis whose voxel boundary is nearest the
+            // entry point.
+            let p = [0, 1, 2].map(|a| v.eye[a] + c.s_in * dir[a]);
+            let face = (0..3)
+                .map(|a| {
+                    let t = p[a] / r - c.key.0[a] as f64;
+                    (a, t.min(1.0 - t).abs())
+                })
+                .min_by(|a, b| a.1.total_cmp(&b.1))
+                .map_or(2, |f| f.0);
+            let shade = [0.8, 0.65, 1.0][face];
+            let base = colour_of(c.key);
+            row[px * 3..px * 3 + 3].copy_from_slice(&base.map(|ch| (ch as f64 * shade) as u8));
+        }
+    });
+    let mut canvas = Canvas::from_rgb(v.width, v.height, rgb);
+    let label = match v.colouring {
+        Colouring::Height => format!("COLOUR: HEIGHT {zmin:.2} TO {zmax:.2} M"),
+        Colouring::Sigma => "COLOUR: SIGMA 0 TO 0.5".to_string(),
+        Colouring::Occupancy => "COLOUR: OCCUPANCY 0.5 TO 1".to_string(),
+    };
+    canvas.text(8, 8, &label, 2, [0, 0, 0]);
+    Ok(canvas)
+}
+
+/// The voxels of `map` in the plane `axis = value` (axis 0, 1, 2 = x, y, z), coloured by
+/// occupancy (viridis on [0, 1]; unknown light grey), each voxel a square of pixels (at least
+/// 600 pixels across), the first remaining axis to the right and the second up.
+///
+/// ```
+/// use mrfmap::map::{Map, MapVoxel, VoxelKey};
+/// let mut map = Map::new("logodds", 0.1).unwrap();
+/// map.voxels.insert(VoxelKey([0, 0, 5]), MapVoxel { occupancy: 1.0, variance: 0.0 });
+/// map.voxels.insert(VoxelKey([3, 2, 5]), MapVoxel { occupancy: 0.0, variance: 0.0 });
+/// let c = mrfmap::outputs::slice_map(&map, 2, 0.55).unwrap();
+/// assert_eq!(c.pixel(10, c.height() - 10), mrfmap::outputs::pictures::viridis(1.0));
+/// assert!(mrfmap::outputs::slice_map(&map, 2, 3.0).is_err()); // no voxel at z = 3
+/// ```
+pub fn slice_map(map: &Map, axis: usize, value: f64) -> Result<Canvas> {
+    let names = ["x", "y", "z"];
+    if axis > 2 {
+        return Err(Error::Invalid(format!("slice axis must be 0, 1 or 2, got {axis}")));
+    }
+    let r = map.resolution();
+    let k = (value / r).floor() as i32;
+    let (a, b) = match axis {
+        0 => (1, 2),
+        1 => (0, 2),
+        _ => (0, 1),
+    };
+    let in_plane: Vec<(VoxelKey, f32)> =
+        map.voxels.iter().filter(|(key, _)| key.0[axis] == k).map(|(key, v)| (key, v.occupancy)).collect();
+    if in_plane.is_empty() {
+        return Err(Error::Invalid(format!("the map has no voxels at {} = {value}", names[axis])));
+    }
+    let (mut lo, mut hi) = ([i32::MAX; 2], [i32::MIN; 2]);
+    for (key, _) in &in_plane {
+        for (j, ax) in [a, b].into_iter().enumerate() {
+            lo[j] = lo[j].min(key.0[ax]);
+            hi[j] = hi[j].max(key.0[ax]);
+        }
+    }
+    let (nw, nh) = ((hi[0] - lo[0] + 1) as u32, (hi[1] - lo[1] + 1) as u32);
+    let scale = (600 / nw.max(nh)).max(1) as i64;
+    let mut c = Canvas::new(nw * scale as u32, nh * scale as u32);
+    c.fill(0, 0, nw as i64 * scale, nh as i64 * scale, [215, 215, 215]);
+    for (key, p) in in_plane {
+        let x = (key.0[a] - lo[0]) as i64 * scale;
+        let y = (hi[1] - key.0[b]) as i64 * scale;
+        c.fill(x, y, x + scale, y + scale, viridis(p as f64));
+    }
+    Ok(c)
+}

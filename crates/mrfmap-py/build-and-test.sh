@@ -1,0 +1,17 @@
+#!/usr/bin/env bash
+# Builds the Python wheel with maturin in a throwaway virtual environment, installs it and
+# runs the pytest suite. Needs Python 3 with venv and pip (and network for maturin, numpy,
+# pytest). Shares the workspace's target folder so the core crates compile once.
+#
+# usage: crates/mrfmap-py/build-and-test.sh [VENV_DIR]
+set -euo pipefail
+here=$(cd "$(dirname "$0")" && pwd)
+root=$(cd "$here/../.." && pwd)
+venv=${1:-$(mktemp -d)/venv}
+python3 -m venv "$venv"
+"$venv/bin/pip" install -q --upgrade pip
+"$venv/bin/pip" install -q "maturin>=1.5,<2" pytest numpy
+CARGO_TARGET_DIR="$root/target" "$venv/bin/maturin" build --release -q -m "$here/Cargo.toml" -o "$venv/wheels"
+"$venv/bin/pip" install -q --force-reinstall "$venv"/wheels/mrfmap-*.whl
+# Run from outside the source tree so `import mrfmap` finds the installed wheel.
+cd "$venv" && "$venv/bin/python" -m pytest -q "$here/tests"

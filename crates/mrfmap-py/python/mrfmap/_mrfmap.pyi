@@ -1,0 +1,99 @@
+"""Type hints and documentation of mrfmap's compiled module."""
+
+import os
+from typing import Optional, Tuple
+
+import numpy as np
+import numpy.typing as npt
+
+class Mapper:
+    """Builds an occupancy map from depth images of one pinhole camera.
+
+    Camera frame: x right, y down, z forward (depth); poses are camera-to-world 4x4 rigid
+    transforms. ``engine`` is ``"logodds"`` (OctoMap's update, fastest), ``"mrf"`` (MRFMap:
+    keyframes that can be removed and re-posed; call ``run`` before reading the map) or
+    ``"crm"`` (a pdf of ``particles`` values per voxel: mean and variance). ``noise`` is a
+    ``noise.toml`` forward sensor model (bias and std polynomials, per pixel patch when
+    given); without one the MRF and CRM use ``0.002 + 0.0035 z^2`` m std, no bias.
+    ``max_range`` cuts longer readings, which then only clear space.
+    Raises ``ValueError`` for bad parameters and ``OSError`` for unreadable files.
+    """
+
+    def __init__(
+        self,
+        resolution: float,
+        fx: float,
+        fy: float,
+        cx: float,
+        cy: float,
+        width: int,
+        height: int,
+        engine: str = "logodds",
+        noise: Optional[os.PathLike[str] | str] = None,
+        max_range: Optional[float] = None,
+        particles: int = 101,
+        iterations: int = 3,
+        prior: float = 0.1,
+    ) -> None: ...
+    def add_frame(
+        self,
+        depth: npt.NDArray[np.float32] | npt.NDArray[np.float64] | npt.NDArray[np.uint16],
+        pose: npt.NDArray[np.float64],
+        depth_scale: Optional[float] = None,
+    ) -> int:
+        """Adds a depth image of shape (height, width) taken from ``pose`` (4x4).
+
+        Float depth is in metres (0, NaN and infinity: no measurement); uint16 depth needs
+        ``depth_scale`` (units per metre). Returns the frame's id (the keyframe id for the
+        MRF engine). Raises ``ValueError`` on a wrong dtype or shape, a NaN or non-rigid pose.
+        """
+    def remove_keyframe(self, id: int) -> None:
+        """MRF only: removes a keyframe; after ``run`` the map is as if it was never added."""
+    def set_pose(self, id: int, pose: npt.NDArray[np.float64]) -> None:
+        """MRF only: moves a keyframe to a corrected pose (after a loop closure)."""
+    def run(self, iterations: int = 3) -> None:
+        """MRF: belief-propagation iterations over all keyframes. Other engines: nothing."""
+    def map(self) -> Map:
+        """The current map (a snapshot)."""
+    def query(
+        self, points: npt.NDArray[np.float64]
+    ) -> Tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """Occupancy and variance at (N, 3) points: ``self.map().query(points)``."""
+    @property
+    def engine(self) -> str: ...
+    @property
+    def resolution(self) -> float: ...
+
+class Map:
+    """A finished map: per known voxel an occupancy probability and a variance."""
+
+    def query(
+        self, points: npt.NDArray[np.float64]
+    ) -> Tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """Occupancy and variance of the voxels holding (N, 3) points; NaN where unknown.
+
+        Engines without a variance (log-odds, MRF) report ``p (1 - p)``.
+        Raises ``ValueError`` for a wrong shape or NaN points.
+        """
+    def voxels(
+        self,
+    ) -> Tuple[npt.NDArray[np.float64], npt.NDArray[np.float32], npt.NDArray[np.float32]]:
+        """All voxels: centres (N, 3) in metres, occupancy (N,), variance (N,)."""
+    def save(self, path: os.PathLike[str] | str) -> None:
+        """Saves in mrfmap's map format (readable by ``load_map`` and the ``mrfmap`` command)."""
+    def export_ply(self, path: os.PathLike[str] | str, occupied_only: bool = False) -> int:
+        """Binary PLY of voxel centres with occupancy (and variance); returns the vertex count."""
+    def export_bt(self, path: os.PathLike[str] | str) -> None:
+        """OctoMap ``.bt`` (occupied above 0.5 / free, pruned). ``ValueError`` if empty."""
+    def export_ot(self, path: os.PathLike[str] | str) -> None:
+        """OctoMap ``.ot`` (log-odds per node). ``ValueError`` if empty."""
+    @property
+    def resolution(self) -> float: ...
+    @property
+    def engine(self) -> str: ...
+    @property
+    def occupied_count(self) -> int: ...
+    def __len__(self) -> int: ...
+
+def load_map(path: os.PathLike[str] | str) -> Map:
+    """Loads a map file written by ``mrfmap build`` or ``Map.save``."""

@@ -1,0 +1,393 @@
+//! Python bindings: build maps from numpy depth images and 4x4 poses with any engine, edit MRF
+//! keyframes, query occupancy and variance at points (vectorised), get all voxels as arrays,
+//! save, load and export. The Python-facing documentation is in `python/mrfmap/_mrfmap.pyi`.
+//!
+//! Every input array is checked here (dtype, shape, finite values, rigid poses) and refused with
+//! a `ValueError` naming the argument, so bad input never reaches the engines.
+
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+
+use mrfmap::frames::{Camera, DepthImage, Frame, NoiseModel, Pose};
+use mrfmap::inference::{CrmParams, Engine, EngineConfig, EngineKind, KeyframeId, MrfEngine, MrfParams, new_engine};
+use mrfmap::map::{Map, VoxelKey};
+use mrfmap::outputs::{OctomapFormat, PlyOptions, write_octomap, write_ply};
+use mrfmap::rays::RayLimits;
+use nalgebra::{Matrix3, Rotation3, Translation3, UnitQuaternion};
+use numpy::{PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray2};
+use pyo3::exceptions::{PyOSError, PyValueError};
+use pyo3::prelude::*;
+
+fn py_err(e: mrfmap::Error) -> PyErr {
+    match e {
+        mrfmap::Error::Io { .. } => PyOSError::new_err(e.to_string()),
+        _ => PyValueError::new_err(e.to_string()),
+    }
+}
+
+/// `dtype` and `shape` of an array-like, for error messages.
+fn describe(obj: &Bound<'_, PyAny>) -> String {
+    let get = |name: &str| obj.getattr(name).and_then(|v| v.str().map(|s| s.to_string())).ok();
+    match (get("dtype"), get("shape")) {
+        (Some(d), Some(s)) => format!("dtype {d}, shape {s}"),
+        _ => format!("a {}", obj.get_type().name().map(|n| n.to_string()).unwrap_or_default()),
+    }
+}
+
+/// A 2-D array of any of the dtypes we accept, as f64 values in row-major order.
+fn floats_2d(obj: &Bound<'_, PyAny>) -> Option<(usize, usize, Vec<f64>)> {
+    if let Ok(a) = obj.extract::<PyReadonlyArray2<'_, f64>>() {
+        let v = a.as_array();
+        return Some((v.nrows(), v.ncols(), v.iter().copied().collect()));
+    }
+    if let Ok(a) = obj.extract::<PyReadonlyArray2<'_, f32>>() {
+        let v = a.as_array();
+        return Some((v.nrows(), v.ncols(), v.iter().map(|x| *x as f64).collect()));
+    }
+    None
+}
+
+/// A camera-to-world pose from a 4x4 rigid transform.
+fn pose_of(obj: &Bound<'_, PyAny>, what: &str) -> PyResult<Pose> {
+    let bad = |m: String| PyValueError::new_err(format!("{what}: {m}"));
+    let Some((4, 4, m)) = floats_2d(obj) else {
+        return Err(bad(format!("need a 4x4 float64 or float32 array, got {}", describe(obj))));
+    };
+    if m.iter().any(|v| !v.is_finite()) {
+        return Err(bad("contains NaN or infinity".into()));
+    }
+    if (m[12].abs() + m[13].abs() + m[14].abs() + (m[15] - 1.0).abs()) > 1e-6 {
+        return Err(bad(format!("last row must be [0, 0, 0, 1], got {:?}", &m[12..16])));
+    }
+    let r = Matrix3::new(m[0], m[1], m[2], m[4], m[5], m[6], m[8], m[9], m[10]);
+    let off = (r.transpose() * r - Matrix3::identity()).abs().max();
+    if off > 1e-4 || r.determinant() < 0.0 {
+        return Err(bad(format!(
+            "rotation part is not a rotation (|R^T R - I| = {off:.2e}, det {:.3})",
+            r.determinant()
+        )));
+    }
+    let q = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(r));
+    Ok(Pose::from_parts(Translation3::new(m[3], m[7], m[11]), q))
+}
+
+/// Points as an (N, 3) array of finite values.
+fn points_of(obj: &Bound<'_, PyAny>) -> PyResult<Vec<[f64; 3]>> {
+    let Some((n, 3, v)) = floats_2d(obj) else {
+        return Err(PyValueError::new_err(format!(
+            "points: need an (N, 3) float64 or float32 array, got {}",
+            describe(obj)
+        )));
+    };
+    if v.iter().any(|x| !x.is_finite()) {
+        return Err(PyValueError::new_err("points: contains NaN or infinity"));
+    }
+    Ok((0..n).map(|i| [v[3 * i], v[3 * i + 1], v[3 * i + 2]]).collect())
+}
+
+enum Inner {
+    Mrf(MrfEngine),
+    Online(Box<dyn Engine>),
+}
+
+impl Inner {
+    fn engine(&self) -> &dyn Engine {
+        match self {
+            Inner::Mrf(e) => e,
+            Inner::Online(e) => e.as_ref(),
+        }
+    }
+}
+
+/// Builds a map from depth images (see the stub file for the Python documentation).
+#[pyclass(module = "mrfmap")]
+struct Mapper {
+    inner: Mutex<Inner>,
+    camera: Camera,
+    noise: Option<Arc<NoiseModel>>,
+    frames: Mutex<usize>,
+}
+
+impl Mapper {
+    fn lock(&self) -> std::sync::MutexGuard<'_, Inner> {
+        self.inner.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    fn mrf_only<T>(&self, what: &str, f: impl FnOnce(&mut MrfEngine) -> mrfmap::Result<T>) -> PyResult<T> {
+        match &mut *self.lock() {
+            Inner::Mrf(e) => f(e).map_err(py_err),
+            Inner::Online(e) => {
+                Err(PyValueError::new_err(format!("{what} needs the mrf engine; this mapper runs {}", e.name())))
+            }
+        }
+    }
+}
+
+#[pymethods]
+impl Mapper {
+    #[new]
+    #[pyo3(signature = (resolution, fx, fy, cx, cy, width, height, engine="logodds", noise=None, max_range=None, particles=101, iterations=3, prior=0.1))]
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        resolution: f64,
+        fx: f64,
+        fy: f64,
+        cx: f64,
+        cy: f64,
+        width: u32,
+        height: u32,
+        engine: &str,
+        noise: Option<PathBuf>,
+        max_range: Option<f64>,
+        particles: usize,
+        iterations: usize,
+        prior: f64,
+    ) -> PyResult<Self> {
+        let kind: EngineKind = engine.parse().map_err(py_err)?;
+        let camera = Camera::new(fx, fy, cx, cy, width, height, 1000.0).map_err(py_err)?;
+        let noise = match noise {
+            Some(p) => {
+                let n = NoiseModel::load(&p).map_err(py_err)?;
+                n.check_camera(&camera).map_err(|m| PyValueError::new_err(format!("{}: {m}", p.display())))?;
+                Some(Arc::new(n))
+            }
+            None => None,
+        };
+        let limits = RayLimits { max_range, bounds: None };
+        let mrf = MrfParams { prior, iterations, ..MrfParams::default() };
+        let inner = if kind == EngineKind::Mrf {
+            Inner::Mrf(MrfEngine::new(resolution, limits, mrf).map_err(py_err)?)
+        } else {
+            let config = EngineConfig { kind, resolution, limits, mrf, crm: CrmParams { particles } };
+            Inner::Online(new_engine(&config).map_err(py_err)?)
+        };
+        Ok(Mapper { inner: Mutex::new(inner), camera, noise, frames: Mutex::new(0) })
+    }
+
+    /// Adds a depth image taken from `pose`; returns its id (the MRF keyframe id).
+    #[pyo3(signature = (depth, pose, depth_scale=None))]
+    fn add_frame(
+        &self,
+        py: Python<'_>,
+        depth: &Bound<'_, PyAny>,
+        pose: &Bound<'_, PyAny>,
+        depth_scale: Option<f64>,
+    ) -> PyResult<u64> {
+        let (w, h) = (self.camera.width as usize, self.camera.height as usize);
+        let values: Vec<f32> = if let Some((rows, cols, v)) = floats_2d(depth) {
+            if depth_scale.is_some() {
+                return Err(PyValueError::new_err("depth_scale is for uint16 depth; float depth is in metres"));
+            }
+            if (rows, cols) != (h, w) {
+                return Err(PyValueError::new_err(format!("depth: shape ({rows}, {cols}) but the camera is {h}x{w}")));
+            }
+            // NaN and infinity mean "no measurement", as in float depth images from ROS.
+            v.iter().map(|&z| if z.is_finite() && z > 0.0 { z as f32 } else { 0.0 }).collect()
+        } else if let Ok(a) = depth.extract::<PyReadonlyArray2<'_, u16>>() {
+            let Some(scale) = depth_scale.filter(|s| *s > 0.0 && s.is_finite()) else {
+                return Err(PyValueError::new_err("uint16 depth needs depth_scale (units per metre, e.g. 1000)"));
+            };
+            let v = a.as_array();
+            if v.dim() != (h, w) {
+                return Err(PyValueError::new_err(format!("depth: shape {:?} but the camera is {h}x{w}", v.dim())));
+            }
+            v.iter().map(|&d| (d as f64 / scale) as f32).collect()
+        } else {
+            return Err(PyValueError::new_err(format!(
+                "depth: need a 2-D float32/float64 (metres) or uint16 (with depth_scale) array, got {}",
+                describe(depth)
+            )));
+        };
+        let pose = pose_of(pose, "pose")?;
+        let mut count = self.frames.lock().unwrap_or_else(|p| p.into_inner());
+        let frame = Frame {
+            index: *count,
+            timestamp: *count as f64,
+            depth: DepthImage::from_vec(w as u32, h as u32, values).expect("size checked"),
+            pose,
+            camera: self.camera,
+            noise: self.noise.clone(),
+        };
+        let id = py
+            .detach(|| match &mut *self.lock() {
+                Inner::Mrf(e) => e.add_keyframe(frame).map(|k| k.0),
+                Inner::Online(e) => e.integrate(&frame).map(|_| frame.index as u64),
+            })
+            .map_err(py_err)?;
+        *count += 1;
+        Ok(id)
+    }
+
+    /// MRF: removes a keyframe (as if it had never been added, once re-run).
+    fn remove_keyframe(&self, id: u64) -> PyResult<()> {
+        self.mrf_only("remove_keyframe", |e| e.remove_keyframe(KeyframeId(id)))
+    }
+
+    /// MRF: moves a keyframe to a corrected pose.
+    fn set_pose(&self, id: u64, pose: &Bound<'_, PyAny>) -> PyResult<()> {
+        let pose = pose_of(pose, "pose")?;
+        self.mrf_only("set_pose", |e| e.set_pose(KeyframeId(id), pose))
+    }
+
+    /// MRF: runs belief-propagation iterations; the online engines have nothing to run.
+    #[pyo3(signature = (iterations=3))]
+    fn run(&self, py: Python<'_>, iterations: usize) {
+        py.detach(|| {
+            if let Inner::Mrf(e) = &mut *self.lock() {
+                e.run(iterations);
+            }
+        })
+    }
+
+    /// The current map.
+    fn map(&self, py: Python<'_>) -> PyMap {
+        PyMap { map: py.detach(|| self.lock().engine().map()) }
+    }
+
+    /// Occupancy and variance at points: `map().query(points)`.
+    fn query<'py>(
+        &self,
+        py: Python<'py>,
+        points: &Bound<'py, PyAny>,
+    ) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>)> {
+        self.map(py).query(py, points)
+    }
+
+    /// The engine's name.
+    #[getter]
+    fn engine(&self) -> &'static str {
+        self.lock().engine().name()
+    }
+
+    /// Voxel edge in metres.
+    #[getter]
+    fn resolution(&self) -> f64 {
+        self.lock().engine().resolution()
+    }
+
+    fn __repr__(&self) -> String {
+        let n = *self.frames.lock().unwrap_or_else(|p| p.into_inner());
+        format!("Mapper(engine={:?}, resolution={}, frames={n})", self.engine(), self.resolution())
+    }
+}
+
+/// A finished map (see the stub file for the Python documentation).
+#[pyclass(name = "Map", module = "mrfmap")]
+struct PyMap {
+    map: Map,
+}
+
+#[pymethods]
+impl PyMap {
+    /// Occupancy and variance at each point; NaN where the map knows nothing.
+    fn query<'py>(
+        &self,
+        py: Python<'py>,
+        points: &Bound<'py, PyAny>,
+    ) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>)> {
+        let pts = points_of(points)?;
+        let r = self.map.resolution();
+        let (mut occ, mut var) = (Vec::with_capacity(pts.len()), Vec::with_capacity(pts.len()));
+        for p in pts {
+            match self.map.voxels.get(VoxelKey::from_point(p, r)) {
+                Some(v) => {
+                    let (_, sigma) = mrfmap::outputs::mean_sigma(&self.map, v);
+                    occ.push(v.occupancy as f64);
+                    var.push(sigma * sigma);
+                }
+                None => {
+                    occ.push(f64::NAN);
+                    var.push(f64::NAN);
+                }
+            }
+        }
+        Ok((PyArray1::from_vec(py, occ), PyArray1::from_vec(py, var)))
+    }
+
+    /// All voxels: centres (N, 3), occupancy (N,) and variance (N,).
+    #[allow(clippy::type_complexity)]
+    fn voxels<'py>(
+        &self,
+        py: Python<'py>,
+    ) -> PyResult<(Bound<'py, PyArray2<f64>>, Bound<'py, PyArray1<f32>>, Bound<'py, PyArray1<f32>>)> {
+        let r = self.map.resolution();
+        let n = self.map.voxels.len();
+        let (mut centres, mut occ, mut var) = (Vec::with_capacity(3 * n), Vec::with_capacity(n), Vec::with_capacity(n));
+        for (key, v) in self.map.voxels.iter() {
+            centres.extend_from_slice(&key.center(r));
+            let (_, sigma) = mrfmap::outputs::mean_sigma(&self.map, v);
+            occ.push(v.occupancy);
+            var.push((sigma * sigma) as f32);
+        }
+        let centres = PyArray1::from_vec(py, centres).reshape([n, 3])?;
+        Ok((centres, PyArray1::from_vec(py, occ), PyArray1::from_vec(py, var)))
+    }
+
+    /// Saves in mrfmap's map format.
+    fn save(&self, path: PathBuf) -> PyResult<()> {
+        self.map.save(&path).map_err(py_err)
+    }
+
+    /// Writes a binary PLY of voxel centres with occupancy (and variance).
+    #[pyo3(signature = (path, occupied_only=false))]
+    fn export_ply(&self, path: PathBuf, occupied_only: bool) -> PyResult<usize> {
+        let options = if occupied_only { PlyOptions::occupied_only() } else { PlyOptions { min_occupancy: None } };
+        write_ply(&self.map, &path, options).map_err(py_err)
+    }
+
+    /// Writes an OctoMap `.bt` file.
+    fn export_bt(&self, path: PathBuf) -> PyResult<()> {
+        write_octomap(&self.map, &path, OctomapFormat::Binary).map(|_| ()).map_err(py_err)
+    }
+
+    /// Writes an OctoMap `.ot` file.
+    fn export_ot(&self, path: PathBuf) -> PyResult<()> {
+        write_octomap(&self.map, &path, OctomapFormat::Full).map(|_| ()).map_err(py_err)
+    }
+
+    /// Voxel edge in metres.
+    #[getter]
+    fn resolution(&self) -> f64 {
+        self.map.resolution()
+    }
+
+    /// The engine that built the map.
+    #[getter]
+    fn engine(&self) -> String {
+        self.map.engine.clone()
+    }
+
+    /// Voxels with occupancy above 0.5.
+    #[getter]
+    fn occupied_count(&self) -> usize {
+        self.map.occupied_count()
+    }
+
+    fn __len__(&self) -> usize {
+        self.map.voxels.len()
+    }
+
+    fn __repr__(&self) -> String {
+        format!(
+            "Map(engine={:?}, resolution={}, voxels={}, occupied={})",
+            self.map.engine,
+            self.map.resolution(),
+            self.map.voxels.len(),
+            self.map.occupied_count()
+        )
+    }
+}
+
+/// Loads a map file written by `mrfmap build` or `Map.save`.
+#[pyfunction]
+fn load_map(path: PathBuf) -> PyResult<PyMap> {
+    Ok(PyMap { map: Map::load(&path).map_err(py_err)? })
+}
+
+#[pymodule]
+fn _mrfmap(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_class::<Mapper>()?;
+    m.add_class::<PyMap>()?;
+    m.add_function(wrap_pyfunction!(load_map, m)?)?;
+    Ok(())
+}

@@ -1,0 +1,111 @@
+"""Tests of the Python bindings: a wall seen head-on, every engine, keyframe edits, files, and
+every kind of bad input raising ValueError (never crashing the interpreter)."""
+
+import math
+
+import numpy as np
+import pytest
+
+import mrfmap
+
+CAM = dict(fx=60.0, fy=60.0, cx=39.5, cy=29.5, width=80, height=60)
+
+
+def wall(z=2.0):
+    return np.full((60, 80), z, dtype=np.float32)
+
+
+def pose(x=0.0):
+    p = np.eye(4)
+    p[0, 3] = x
+    return p
+
+
+@pytest.mark.parametrize("engine", ["logodds", "mrf", "crm"])
+def test_wall_is_occupied_and_space_in_front_free(engine):
+    m = mrfmap.Mapper(0.05, engine=engine, particles=21, **CAM)
+    for i in range(3):
+        m.add_frame(wall(), pose(0.01 * i))
+    m.run()
+    # 0.15 m in front of the wall: inside every engine's allocation (the MRF's is a band).
+    occ, var = m.query(np.array([[0.0, 0.0, 1.85], [0.0, 0.0, 2.02], [0.0, 0.0, 50.0]]))
+    assert occ[0] < 0.5 < occ[1]
+    assert math.isnan(occ[2]) and math.isnan(var[2])
+    assert np.all(var[:2] >= 0) and np.all(var[:2] <= 0.25)
+    centres, o, v = m.map().voxels()
+    assert centres.shape == (len(o), 3) and o.dtype == np.float32 and len(v) == len(o)
+    assert m.engine == engine and m.resolution == 0.05
+
+
+def test_uint16_depth_and_float64_depth_agree():
+    a = mrfmap.Mapper(0.05, **CAM)
+    b = mrfmap.Mapper(0.05, **CAM)
+    a.add_frame(np.full((60, 80), 2000, dtype=np.uint16), np.eye(4), depth_scale=1000.0)
+    b.add_frame(wall().astype(np.float64), np.eye(4))
+    assert len(a.map()) == len(b.map()) and a.map().occupied_count == b.map().occupied_count
+
+
+def test_mrf_remove_equals_never_added_and_repose():
+    m = mrfmap.Mapper(0.05, engine="mrf", **CAM)
+    keep = m.add_frame(wall(), pose())
+    extra = m.add_frame(wall(1.5), pose())  # a conflicting reading
+    m.run(5)
+    m.remove_keyframe(extra)
+    m.run(20)
+    ref = mrfmap.Mapper(0.05, engine="mrf", **CAM)
+    ref.add_frame(wall(), pose())
+    ref.run(20)
+    pts = np.array([[0.0, 0.0, 1.52], [0.0, 0.0, 2.02]])
+    np.testing.assert_allclose(m.query(pts)[0], ref.query(pts)[0], atol=1e-4)
+    m.set_pose(keep, pose(0.5))
+    m.run(5)
+    with pytest.raises(ValueError, match="keyframe"):
+        m.remove_keyframe(12345)
+
+
+def test_files_round_trip(tmp_path):
+    m = mrfmap.Mapper(0.05, engine="crm", particles=15, **CAM)
+    m.add_frame(wall(), np.eye(4))
+    mp = m.map()
+    mp.save(tmp_path / "w.mrfmap")
+    back = mrfmap.load_map(str(tmp_path / "w.mrfmap"))
+    assert len(back) == len(mp) and back.engine == "crm"
+    pts = mp.voxels()[0]
+    np.testing.assert_array_equal(back.query(pts)[0], mp.query(pts)[0])
+    assert mp.export_ply(tmp_path / "w.ply", occupied_only=True) == mp.occupied_count
+    mp.export_bt(tmp_path / "w.bt")
+    mp.export_ot(tmp_path / "w.ot")
+    assert (tmp_path / "w.bt").read_bytes().startswith(b"# Octomap OcTree binary file")
+
+
+def test_bad_input_raises_value_error(tmp_path):
+    m = mrfmap.Mapper(0.05, **CAM)
+    cases = [
+        (lambda: m.add_frame(np.zeros((10, 10), np.float32), np.eye(4)), "shape"),
+        (lambda: m.add_frame(wall().astype(np.int32), np.eye(4)), "dtype"),
+        (lambda: m.add_frame([[1.0]], np.eye(4)), "depth"),
+        (lambda: m.add_frame(np.zeros((60, 80), np.uint16), np.eye(4)), "depth_scale"),
+        (lambda: m.add_frame(wall(), np.full((4, 4), np.nan)), "NaN"),
+        (lambda: m.add_frame(wall(), np.eye(3)), "4x4"),
+        (lambda: m.add_frame(wall(), 2 * np.eye(4)), "last row"),
+        (lambda: m.add_frame(wall(), np.diag([2.0, 1.0, 1.0, 1.0])), "rotation"),
+        (lambda: m.query(np.zeros((3, 2))), "points"),
+        (lambda: m.query(np.array([[np.nan, 0.0, 0.0]])), "NaN"),
+        (lambda: m.remove_keyframe(0), "mrf"),
+        (lambda: mrfmap.Mapper(0.05, engine="octree", **CAM), "unknown engine"),
+        (lambda: mrfmap.Mapper(-1.0, **CAM), "resolution"),
+        (lambda: mrfmap.Mapper(0.05, engine="crm", particles=1, **CAM), "particles"),
+        (lambda: m.map().export_bt(tmp_path / "empty.bt"), "empty"),
+    ]
+    for call, needle in cases:
+        with pytest.raises(ValueError, match=needle):
+            call()
+    assert not (tmp_path / "empty.bt").exists()
+    with pytest.raises(OSError):
+        mrfmap.load_map(tmp_path / "missing.mrfmap")
+
+
+def test_module_docstring_example():
+    import doctest
+
+    assert doctest.testmod(mrfmap, raise_on_error=True).attempted > 0

@@ -18,6 +18,9 @@ use numpy::{PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray2};
 use pyo3::exceptions::{PyOSError, PyValueError};
 use pyo3::prelude::*;
 
+/// Occupancy and variance per queried point.
+type Queried<'py> = PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>)>;
+
 fn py_err(e: mrfmap::Error) -> PyErr {
     match e {
         mrfmap::Error::Io { .. } => PyOSError::new_err(e.to_string()),
@@ -85,15 +88,16 @@ fn points_of(obj: &Bound<'_, PyAny>) -> PyResult<Vec<[f64; 3]>> {
     Ok((0..n).map(|i| [v[3 * i], v[3 * i + 1], v[3 * i + 2]]).collect())
 }
 
+/// The engine behind a mapper: the MRF keeps its own type for keyframe edits.
 enum Inner {
-    Mrf(MrfEngine),
+    Mrf(Box<MrfEngine>),
     Online(Box<dyn Engine>),
 }
 
 impl Inner {
     fn engine(&self) -> &dyn Engine {
         match self {
-            Inner::Mrf(e) => e,
+            Inner::Mrf(e) => e.as_ref(),
             Inner::Online(e) => e.as_ref(),
         }
     }
@@ -156,7 +160,7 @@ impl Mapper {
         let limits = RayLimits { max_range, bounds: None };
         let mrf = MrfParams { prior, iterations, ..MrfParams::default() };
         let inner = if kind == EngineKind::Mrf {
-            Inner::Mrf(MrfEngine::new(resolution, limits, mrf).map_err(py_err)?)
+            Inner::Mrf(Box::new(MrfEngine::new(resolution, limits, mrf).map_err(py_err)?))
         } else {
             let config = EngineConfig { kind, resolution, limits, mrf, crm: CrmParams { particles } };
             Inner::Online(new_engine(&config).map_err(py_err)?)
@@ -245,11 +249,7 @@ impl Mapper {
     }
 
     /// Occupancy and variance at points: `map().query(points)`.
-    fn query<'py>(
-        &self,
-        py: Python<'py>,
-        points: &Bound<'py, PyAny>,
-    ) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>)> {
+    fn query<'py>(&self, py: Python<'py>, points: &Bound<'py, PyAny>) -> Queried<'py> {
         self.map(py).query(py, points)
     }
 
@@ -280,11 +280,7 @@ struct PyMap {
 #[pymethods]
 impl PyMap {
     /// Occupancy and variance at each point; NaN where the map knows nothing.
-    fn query<'py>(
-        &self,
-        py: Python<'py>,
-        points: &Bound<'py, PyAny>,
-    ) -> PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>)> {
+    fn query<'py>(&self, py: Python<'py>, points: &Bound<'py, PyAny>) -> Queried<'py> {
         let pts = points_of(points)?;
         let r = self.map.resolution();
         let (mut occ, mut var) = (Vec::with_capacity(pts.len()), Vec::with_capacity(pts.len()));

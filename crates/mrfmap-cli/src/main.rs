@@ -45,6 +45,8 @@ enum Command {
     Loo(commands::loo::Args),
     /// Engines and resolutions side by side: a Markdown report with tables and pictures.
     Compare(commands::compare::Args),
+    /// Time and memory against resolution, image size and MRF keyframes: tables and plots.
+    Scaling(commands::scaling::Args),
     /// Regenerate a paper's experiment (`experiment crm-2d -o DIR`).
     Experiment(commands::experiment::Args),
     /// Time map building per frame at several resolutions (release builds only make sense).
@@ -75,6 +77,7 @@ fn main() {
             Command::Eval(a) => commands::eval::run(a),
             Command::Loo(a) => commands::loo::run(a),
             Command::Compare(a) => commands::compare::run(a),
+            Command::Scaling(a) => commands::scaling::run(a),
             Command::Experiment(a) => commands::experiment::run(a),
             Command::Bench(a) => commands::bench::run(a),
         }

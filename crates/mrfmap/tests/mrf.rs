@@ -292,3 +292,47 @@ fn mrf_uses_per_patch_models_and_logodds_ignores_them() {
     assert_eq!(a.occupied_count(), b.occupied_count());
     assert_eq!(a.voxels.len(), b.voxels.len());
 }
+
+/// Adding a keyframe re-traces only the keyframes that share bricks with it: two groups of
+/// views 50 m apart; a new view of group A leaves group B's voxels exactly as they were, and
+/// group A's come out exactly as a full sweep would make them.
+#[test]
+fn adding_a_keyframe_retraces_only_overlapping_keyframes() {
+    let s = scene(&format!(
+        "{SMALL_CAMERA}[[box]]\nmin = [2.0, -2.0, -1.0]\nmax = [2.3, 2.0, 1.0]\n\
+         [[box]]\nmin = [52.0, -2.0, -1.0]\nmax = [52.3, 2.0, 1.0]\n\
+         [[view]]\neye = [0.0, 0.0, 0.0]\ntarget = [1.0, 0.0, 0.0]\n"
+    ));
+    let view = |x: f64, y: f64| look_at([x, y, 0.0].into(), [x + 1.0, y, 0.0].into()).unwrap();
+    let group_a = [view(0.0, 0.0), view(0.0, 0.2), view(0.3, -0.1)];
+    let group_b = [view(50.0, 0.0), view(50.0, 0.2), view(50.3, -0.1)];
+    let all: Vec<Pose> = group_a.iter().chain(&group_b).copied().collect();
+    let old = frames(&s, &all, Some(1));
+    let new = frames(&s, &[view(0.1, 0.1)], Some(2)).remove(0);
+    let mut incremental = build_mrf(&old, 0.05, 3);
+    let before: Vec<(VoxelKey, f64)> = incremental.marginals().collect();
+    let mut full = build_mrf(&old, 0.05, 3);
+    incremental.add_keyframe(new.clone()).unwrap();
+    incremental.run(3);
+    assert_eq!(incremental.last_run_keyframes(), 4, "group A and the new keyframe");
+    full.add_keyframe(new).unwrap();
+    full.run_all(3);
+    assert_eq!(full.last_run_keyframes(), 7);
+    let in_b = |k: &VoxelKey| k.0[0] > 500;
+    for (k, p) in &before {
+        if in_b(k) {
+            assert_eq!(incremental.marginal(*k), Some(*p), "group B untouched at {k:?}");
+        }
+    }
+    let mut compared = 0;
+    for (k, p) in full.marginals() {
+        if !in_b(&k) {
+            assert_eq!(incremental.marginal(k), Some(p), "group A as a full sweep at {k:?}");
+            compared += 1;
+        }
+    }
+    assert!(compared > 1000);
+    // With nothing pending, run sweeps every keyframe.
+    incremental.run(1);
+    assert_eq!(incremental.last_run_keyframes(), 7);
+}

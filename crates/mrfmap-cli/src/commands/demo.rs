@@ -11,7 +11,7 @@ use mrfmap::outputs::{PlyOptions, write_ply};
 use mrfmap::source::{Dataset, Scene, simulate};
 
 /// The bundled scene, also at `crates/mrfmap-cli/assets/demo_room.toml`.
-const DEMO_SCENE: &str = include_str!("../../assets/demo_room.toml");
+pub const DEMO_SCENE: &str = include_str!("../../assets/demo_room.toml");
 const RESOLUTION: f64 = 0.02;
 const SEED: u64 = 1;
 

@@ -11,6 +11,7 @@ pub mod export;
 pub mod info;
 pub mod loo;
 pub mod noise;
+pub mod scaling;
 pub mod simulate;
 pub mod view;
 

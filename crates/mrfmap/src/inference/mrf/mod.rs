@@ -32,7 +32,7 @@ use std::ops::ControlFlow;
 use std::sync::Arc;
 
 use rayon::prelude::*;
-use rustc_hash::FxHashMap;
+use rustc_hash::{FxHashMap, FxHashSet};
 
 pub use messages::{MU_EPS, ray_messages};
 
@@ -126,6 +126,10 @@ pub struct MrfEngine {
     keyframes: Vec<Keyframe>,
     next_id: u64,
     default_noise: Arc<NoiseModel>,
+    /// Bricks whose evidence changed since the last `run` (keyframes added, moved, removed).
+    changed: FxHashSet<BrickKey>,
+    /// Keyframes updated per iteration by the last `run`.
+    last_run: usize,
 }
 
 impl MrfEngine {
@@ -142,6 +146,8 @@ impl MrfEngine {
             keyframes: Vec::new(),
             next_id: 0,
             default_noise: Arc::new(default_noise_model()),
+            changed: FxHashSet::default(),
+            last_run: 0,
         })
     }
 
@@ -166,6 +172,7 @@ impl MrfEngine {
         let mut kf = Keyframe { id, frame, noise, bricks: Vec::new(), messages: Grid::new(self.resolution())? };
         kf.bricks = self.allocation_of(&kf);
         self.reference_bricks(&kf.bricks);
+        self.changed.extend(kf.bricks.iter().copied());
         self.keyframes.push(kf);
         Ok(id)
     }
@@ -176,6 +183,7 @@ impl MrfEngine {
         let i = self.index_of(id)?;
         self.withdraw_messages(i);
         let kf = self.keyframes.remove(i);
+        self.changed.extend(kf.bricks.iter().copied());
         self.release_bricks(&kf.bricks);
         Ok(())
     }
@@ -192,18 +200,44 @@ impl MrfEngine {
         self.keyframes[i].frame = frame;
         let new = self.allocation_of(&self.keyframes[i]);
         self.reference_bricks(&new);
+        self.changed.extend(old.iter().chain(&new).copied());
         self.keyframes[i].bricks = new;
         self.release_bricks(&old);
         Ok(())
     }
 
-    /// Runs `iterations` rounds of belief propagation over all keyframes.
+    /// Runs `iterations` rounds of belief propagation. After keyframes were added, moved or
+    /// removed, only the keyframes that share a brick with them are re-traced: the others'
+    /// voxels did not change, so their messages would come out the same. (Effects two or more
+    /// overlaps away are left to later runs.) With no such edits pending it sweeps every
+    /// keyframe, so repeated calls keep converging.
     pub fn run(&mut self, iterations: usize) {
+        let active: Vec<usize> = if self.changed.is_empty() {
+            (0..self.keyframes.len()).collect()
+        } else {
+            let changed = &self.changed;
+            (0..self.keyframes.len())
+                .filter(|&i| self.keyframes[i].bricks.iter().any(|b| changed.contains(b)))
+                .collect()
+        };
         for _ in 0..iterations {
-            for i in 0..self.keyframes.len() {
+            for &i in &active {
                 self.update_keyframe(i);
             }
         }
+        self.changed.clear();
+        self.last_run = active.len();
+    }
+
+    /// Runs `iterations` rounds over every keyframe, whatever changed.
+    pub fn run_all(&mut self, iterations: usize) {
+        self.changed.clear();
+        self.run(iterations);
+    }
+
+    /// Keyframes the last [`MrfEngine::run`] updated in each iteration.
+    pub fn last_run_keyframes(&self) -> usize {
+        self.last_run
     }
 
     /// Marginal occupancy of a voxel, `None` if unallocated.

@@ -1,0 +1,275 @@
+//! `mrfmap scaling`: how time and memory grow with resolution, image size and (MRF) the
+//! number of keyframes, as tables (`report.md`) and PNG plots. Release builds only make sense.
+//!
+//! Memory is the process's peak resident set during each build, measured by resetting the
+//! peak (`/proc/self/clear_refs`) before it; the preloaded frames are in every figure (the
+//! baseline row says how much they take).
+
+use std::fmt::Write as _;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use mrfmap::frames::{Camera, DepthImage, Frame};
+use mrfmap::inference::{CrmParams, EngineConfig, EngineKind, MrfEngine, MrfParams, new_engine};
+use mrfmap::outputs::pictures::write_text;
+use mrfmap::outputs::{Canvas, PlotArea, Rgb};
+use mrfmap::source::{Dataset, Scene};
+
+use super::demo::DEMO_SCENE;
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// Dataset for the resolution and image-size curves.
+    dataset: PathBuf,
+    /// Output folder.
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Resolutions (metres).
+    #[arg(long, value_delimiter = ',', default_values_t = [0.05, 0.04, 0.03, 0.02, 0.015, 0.01])]
+    resolutions: Vec<f64>,
+    /// Keyframe counts for the MRF curves (views of the demo room at 0.05 m).
+    #[arg(long, value_delimiter = ',', default_values_t = [1, 5, 10, 20, 40, 60])]
+    keyframes: Vec<usize>,
+    /// CRM particles.
+    #[arg(long, default_value_t = 15)]
+    particles: usize,
+}
+
+const ENGINES: [(EngineKind, Rgb); 3] =
+    [(EngineKind::LogOdds, [31, 119, 180]), (EngineKind::Mrf, [214, 39, 40]), (EngineKind::Crm, [44, 160, 44])];
+
+/// Peak resident memory (MiB) since the last reset, and a reset for the next measurement.
+fn peak_mib_and_reset() -> f64 {
+    let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+    let kb = status
+        .lines()
+        .find(|l| l.starts_with("VmHWM:"))
+        .and_then(|l| l.split_whitespace().nth(1))
+        .and_then(|v| v.parse::<f64>().ok())
+        .unwrap_or(f64::NAN);
+    let _ = std::fs::write("/proc/self/clear_refs", "5");
+    kb / 1024.0
+}
+
+/// Seconds per frame and peak MiB of a full build (integrate every frame, then finish).
+fn time_build(kind: EngineKind, resolution: f64, particles: usize, frames: &[Frame]) -> Result<(f64, f64)> {
+    peak_mib_and_reset();
+    let config = EngineConfig { crm: CrmParams { particles }, ..EngineConfig::new(kind, resolution) };
+    let mut engine = new_engine(&config)?;
+    let t = Instant::now();
+    for f in frames {
+        engine.integrate(f)?;
+    }
+    engine.finish()?;
+    let secs = t.elapsed().as_secs_f64() / frames.len() as f64;
+    let mib = peak_mib_and_reset();
+    drop(engine);
+    Ok((secs, mib))
+}
+
+/// `frame` with every `stride`-th pixel in each direction (the camera scaled to match).
+fn subsample(frame: &Frame, stride: u32) -> Result<Frame> {
+    let c = &frame.camera;
+    let (w, h) = (c.width / stride, c.height / stride);
+    let s = stride as f64;
+    // Pixel (u, v) of the small image is pixel (s u, s v) of the full one.
+    let camera = Camera::new(c.fx / s, c.fy / s, c.cx / s, c.cy / s, w, h, c.depth_scale)?;
+    let mut depth = DepthImage::new(w, h);
+    for v in 0..h {
+        for u in 0..w {
+            if let Some(z) = frame.depth.get(u * stride, v * stride) {
+                depth.set(u, v, z);
+            }
+        }
+    }
+    // The per-patch noise table is tied to the full image; use its aggregate.
+    let noise = frame.noise.as_ref().map(|n| Arc::new(mrfmap::frames::NoiseModel::aggregate(n.bias, n.std)));
+    Ok(Frame { depth, camera, noise, ..frame.clone() })
+}
+
+/// A line plot of `series` (label, colour, points) on a log10 y axis.
+fn plot(
+    path: &std::path::Path,
+    title: &str,
+    x_label: &str,
+    y_label: &str,
+    series: &[(String, Rgb, Vec<(f64, f64)>)],
+) -> Result<()> {
+    let pts = series.iter().flat_map(|s| s.2.iter().copied()).filter(|p| p.1 > 0.0 && p.1.is_finite());
+    let (mut x0, mut x1, mut y0, mut y1) = (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
+    for (x, y) in pts {
+        (x0, x1, y0, y1) = (x0.min(x), x1.max(x), y0.min(y.log10()), y1.max(y.log10()));
+    }
+    let mut c = Canvas::new(720, 480);
+    let area = PlotArea::new(&mut c, (0, 0, 720, 480), (x0, x1), (y0.floor(), y1.ceil()), x_label, y_label, title);
+    for (row, (label, colour, points)) in series.iter().enumerate() {
+        let logs: Vec<(f64, f64)> = points.iter().filter(|p| p.1 > 0.0).map(|&(x, y)| (x, y.log10())).collect();
+        area.polyline(&mut c, &logs, *colour);
+        for &(x, y) in &logs {
+            let (px, py) = area.to_pixel(x, y);
+            c.fill(px as i64 - 3, py as i64 - 3, px as i64 + 4, py as i64 + 4, *colour);
+        }
+        area.legend(&mut c, row, label, *colour);
+    }
+    c.save(path)?;
+    Ok(())
+}
+
+pub fn run(a: Args) -> Result<()> {
+    std::fs::create_dir_all(&a.output)?;
+    let dataset = Dataset::open(&a.dataset)?;
+    let frames = (0..dataset.len()).map(|i| dataset.frame(i)).collect::<mrfmap::Result<Vec<_>>>()?;
+    let baseline = peak_mib_and_reset();
+    let mut report = format!(
+        "# Scaling on {} ({} frames of {}x{}), {} threads\n\nCommand: `mrfmap scaling {} -o {}`. \
+         Baseline (frames loaded): {baseline:.0} MiB peak resident. CRM with {} particles.\n",
+        a.dataset.display(),
+        frames.len(),
+        dataset.camera().width,
+        dataset.camera().height,
+        rayon::current_num_threads(),
+        a.dataset.display(),
+        a.output.display(),
+        a.particles
+    );
+
+    // Resolution.
+    let _ = writeln!(
+        report,
+        "\n## Time and peak memory vs resolution\n\n| engine | res (m) | s/frame | peak MiB |\n|---|---|---|---|"
+    );
+    let (mut time_series, mut mem_series) = (Vec::new(), Vec::new());
+    for (kind, colour) in ENGINES {
+        let (mut t, mut m) = (Vec::new(), Vec::new());
+        for &r in &a.resolutions {
+            let (secs, mib) = time_build(kind, r, a.particles, &frames)?;
+            let _ = writeln!(report, "| {kind} | {r} | {secs:.3} | {mib:.0} |");
+            eprintln!("{kind} {r}: {secs:.3} s/frame, {mib:.0} MiB");
+            t.push((r * 100.0, secs));
+            m.push((r * 100.0, mib));
+        }
+        time_series.push((kind.name().to_string(), colour, t));
+        mem_series.push((kind.name().to_string(), colour, m));
+    }
+    plot(
+        &a.output.join("time_vs_resolution.png"),
+        "TIME PER FRAME VS RESOLUTION",
+        "VOXEL SIZE (CM)",
+        "LOG10 S/FRAME",
+        &time_series,
+    )?;
+    plot(
+        &a.output.join("memory_vs_resolution.png"),
+        "PEAK MEMORY VS RESOLUTION",
+        "VOXEL SIZE (CM)",
+        "LOG10 MIB",
+        &mem_series,
+    )?;
+
+    // Image size.
+    let _ = writeln!(report, "\n## Time vs image size (0.02 m)\n\n| engine | image | s/frame |\n|---|---|---|");
+    let mut image_series = Vec::new();
+    for (kind, colour) in ENGINES {
+        let mut t = Vec::new();
+        for stride in [8u32, 4, 2, 1] {
+            let small: Vec<Frame> = frames.iter().map(|f| subsample(f, stride)).collect::<Result<_>>()?;
+            let (secs, _) = time_build(kind, 0.02, a.particles, &small)?;
+            let pixels = small[0].camera.pixel_count();
+            let _ = writeln!(report, "| {kind} | {}x{} | {secs:.3} |", small[0].camera.width, small[0].camera.height);
+            t.push((pixels as f64 / 1000.0, secs));
+        }
+        image_series.push((kind.name().to_string(), colour, t));
+    }
+    plot(
+        &a.output.join("time_vs_image_size.png"),
+        "TIME PER FRAME VS IMAGE SIZE (0.02 M)",
+        "THOUSANDS OF PIXELS",
+        "LOG10 S/FRAME",
+        &image_series,
+    )?;
+
+    // MRF keyframes: views of the demo room on a circle.
+    let scene = Scene::from_toml(DEMO_SCENE, "demo_room.toml".as_ref()).context("demo scene")?;
+    let n_max = a.keyframes.iter().copied().max().unwrap_or(1);
+    let orbit = |k: usize| {
+        let angle = std::f64::consts::TAU * k as f64 / n_max as f64;
+        let eye = [2.0 + 1.2 * angle.cos(), 2.0 + 1.2 * angle.sin(), 1.4];
+        mrfmap::frames::look_at(eye.into(), [2.0, 2.0, 0.6].into()).expect("valid view")
+    };
+    let render = |k: usize, offset: f64| {
+        let pose = orbit(k);
+        let depth = scene.add_noise(&scene.render(&pose), 7, k);
+        let mut pose = pose;
+        pose.translation.vector.x += offset; // far-away copies do not overlap
+        Frame {
+            index: k,
+            timestamp: k as f64,
+            depth,
+            pose,
+            camera: scene.camera,
+            noise: scene.noise.clone().map(Arc::new),
+        }
+    };
+    let room: Vec<Frame> = (0..=n_max).map(|k| render(k, 0.0)).collect();
+    let _ = writeln!(
+        report,
+        "\n## MRF vs number of keyframes (demo room, 0.05 m)\n\nFull build: add N keyframes, 3 iterations. \
+         Add one, overlapping: add a view of the same room to N inferred keyframes and run 3 \
+         iterations (every keyframe overlaps it). Add one, apart: the N keyframes are copies \
+         100 m apart from each other (none overlaps the new one except the first).\n\n\
+         | N | full build s | add one (overlapping) s | add one (apart) s | keyframes re-traced (apart) |\n|---|---|---|---|---|"
+    );
+    let (mut full, mut add_near, mut add_far) = (Vec::new(), Vec::new(), Vec::new());
+    for &n in &a.keyframes {
+        let params = MrfParams::default();
+        let build = |frames: &[Frame]| -> Result<(MrfEngine, f64)> {
+            let mut e = MrfEngine::new(0.05, Default::default(), params)?;
+            let t = Instant::now();
+            for f in frames {
+                e.add_keyframe(f.clone())?;
+            }
+            e.run(3);
+            Ok((e, t.elapsed().as_secs_f64()))
+        };
+        let (mut near, full_secs) = build(&room[..n])?;
+        let t = Instant::now();
+        near.add_keyframe(room[n].clone())?;
+        near.run(3);
+        let near_secs = t.elapsed().as_secs_f64();
+        let apart: Vec<Frame> = (0..n).map(|k| render(k, 100.0 * k as f64)).collect();
+        let (mut far, _) = build(&apart)?;
+        let t = Instant::now();
+        far.add_keyframe(room[n].clone())?;
+        far.run(3);
+        let far_secs = t.elapsed().as_secs_f64();
+        let _ = writeln!(
+            report,
+            "| {n} | {full_secs:.2} | {near_secs:.2} | {far_secs:.2} | {} |",
+            far.last_run_keyframes()
+        );
+        eprintln!("mrf {n} keyframes: build {full_secs:.2} s, add near {near_secs:.2} s, add apart {far_secs:.2} s");
+        full.push((n as f64, full_secs));
+        add_near.push((n as f64, near_secs));
+        add_far.push((n as f64, far_secs));
+    }
+    plot(
+        &a.output.join("mrf_vs_keyframes.png"),
+        "MRF: TIME VS KEYFRAMES (0.05 M)",
+        "KEYFRAMES",
+        "LOG10 S",
+        &[
+            ("FULL BUILD".into(), [0, 0, 0], full),
+            ("ADD ONE, OVERLAPPING".into(), [214, 39, 40], add_near),
+            ("ADD ONE, OTHERS APART".into(), [31, 119, 180], add_far),
+        ],
+    )?;
+    let _ = writeln!(
+        report,
+        "\nPlots: `time_vs_resolution.png`, `memory_vs_resolution.png`, `time_vs_image_size.png`, `mrf_vs_keyframes.png`."
+    );
+    write_text(&a.output.join("report.md"), &report)?;
+    print!("{report}");
+    Ok(())
+}

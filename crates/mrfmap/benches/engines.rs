@@ -1,0 +1,124 @@
+//! Micro-benchmarks (divan): voxel traversal, one frame through each engine, one MRF
+//! iteration over N keyframes, and scoring one held-out view. The frames are the demo room
+//! (`crates/mrfmap-cli/assets/demo_room.toml`, 640x480, D435-like noise) rendered in setup.
+//!
+//! Run: `cargo bench -p mrfmap --bench engines` (release). Results: BENCHMARKS.md.
+
+use std::ops::ControlFlow;
+use std::sync::Arc;
+
+use divan::{Bencher, black_box, counter::ItemsCount};
+use mrfmap::frames::Frame;
+use mrfmap::inference::{CrmEngine, CrmParams, Engine, LogOddsEngine, LogOddsParams, MrfEngine, MrfParams};
+use mrfmap::outputs::{AccuracyParams, Scorer};
+use mrfmap::random::Rng;
+use mrfmap::rays::for_each_crossing;
+use mrfmap::source::Scene;
+
+fn main() {
+    divan::main();
+}
+
+fn room() -> Scene {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../mrfmap-cli/assets/demo_room.toml");
+    Scene::load(&path).expect("demo scene")
+}
+
+/// The first `n` views of the demo room, noisy.
+fn frames(n: usize) -> Vec<Frame> {
+    let scene = room();
+    scene
+        .views
+        .iter()
+        .take(n)
+        .enumerate()
+        .map(|(i, pose)| Frame {
+            index: i,
+            timestamp: i as f64,
+            depth: scene.add_noise(&scene.render(pose), 1, i),
+            pose: *pose,
+            camera: scene.camera,
+            noise: scene.noise.clone().map(Arc::new),
+        })
+        .collect()
+}
+
+/// Voxels visited per second: 1000 random 5 m rays at 0.01 m (about 870 voxels each).
+#[divan::bench(sample_count = 20)]
+fn traversal(bencher: Bencher) {
+    let mut rng = Rng::new(1);
+    let rays: Vec<([f64; 3], [f64; 3])> = (0..1000)
+        .map(|_| {
+            let o = [rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0)];
+            let d = [rng.normal(), rng.normal(), rng.normal()];
+            let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+            (o, d.map(|x| x / n))
+        })
+        .collect();
+    let mut total = 0u64;
+    for (o, d) in &rays {
+        for_each_crossing(*o, *d, 0.0, 5.0, 0.01, |_| {
+            total += 1;
+            ControlFlow::Continue(())
+        });
+    }
+    bencher.counter(ItemsCount::new(total)).bench(|| {
+        let mut n = 0u64;
+        for (o, d) in &rays {
+            for_each_crossing(*o, *d, 0.0, 5.0, 0.01, |c| {
+                n += c.key.0[0] as u64 & 1;
+                ControlFlow::Continue(())
+            });
+        }
+        black_box(n)
+    });
+}
+
+/// One 640x480 frame into a fresh log-odds map (OctoMap semantics), 0.02 m.
+#[divan::bench(sample_count = 10)]
+fn logodds_frame(bencher: Bencher) {
+    let f = frames(1).remove(0);
+    bencher
+        .with_inputs(|| LogOddsEngine::new(0.02, Default::default(), LogOddsParams::default()).unwrap())
+        .bench_local_refs(|e| e.integrate(&f).unwrap());
+}
+
+/// One 640x480 frame into a CRM map holding one earlier frame, 0.02 m, by particle count.
+#[divan::bench(args = [15, 101], sample_count = 5)]
+fn crm_frame(bencher: Bencher, particles: usize) {
+    let fs = frames(2);
+    bencher
+        .with_inputs(|| {
+            let mut e = CrmEngine::new(0.02, Default::default(), CrmParams { particles }).unwrap();
+            e.integrate(&fs[0]).unwrap();
+            e
+        })
+        .bench_local_refs(|e| e.integrate(&fs[1]).unwrap());
+}
+
+/// One MRF iteration (every keyframe re-traced once) over N keyframes, 0.05 m.
+#[divan::bench(args = [1, 4, 12], sample_count = 5)]
+fn mrf_iteration(bencher: Bencher, keyframes: usize) {
+    let fs = frames(keyframes);
+    let mut e = MrfEngine::new(0.05, Default::default(), MrfParams::default()).unwrap();
+    for f in &fs {
+        e.add_keyframe(f.clone()).unwrap();
+    }
+    e.run(2);
+    bencher.counter(ItemsCount::new(keyframes)).bench_local(|| e.run_all(1));
+}
+
+/// Scoring one 640x480 held-out view against a log-odds map of the other views, 0.02 m.
+#[divan::bench(sample_count = 10)]
+fn accuracy_view(bencher: Bencher) {
+    let fs = frames(12);
+    let mut e = LogOddsEngine::new(0.02, Default::default(), LogOddsParams::default()).unwrap();
+    for f in &fs[1..] {
+        e.integrate(f).unwrap();
+    }
+    let map = e.map();
+    let params = AccuracyParams::for_map(&map);
+    let scorer = Scorer::new(&map, params);
+    let held = &fs[0];
+    bencher.bench(|| black_box(scorer.score_view(&held.camera, &held.pose, &held.depth)));
+}

@@ -89,14 +89,11 @@ fn subsample(frame: &Frame, stride: u32) -> Result<Frame> {
     Ok(Frame { depth, camera, noise, ..frame.clone() })
 }
 
-/// A line plot of `series` (label, colour, points) on a log10 y axis.
-fn plot(
-    path: &std::path::Path,
-    title: &str,
-    x_label: &str,
-    y_label: &str,
-    series: &[(String, Rgb, Vec<(f64, f64)>)],
-) -> Result<()> {
+/// One line of a plot: label, colour, points.
+type Series = (String, Rgb, Vec<(f64, f64)>);
+
+/// A line plot of `series` on a log10 y axis.
+fn plot(path: &std::path::Path, title: &str, x_label: &str, y_label: &str, series: &[Series]) -> Result<()> {
     let pts = series.iter().flat_map(|s| s.2.iter().copied()).filter(|p| p.1 > 0.0 && p.1.is_finite());
     let (mut x0, mut x1, mut y0, mut y1) = (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
     for (x, y) in pts {

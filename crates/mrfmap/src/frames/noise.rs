@@ -16,8 +16,10 @@ use crate::frames::Camera;
 /// dips to zero or below never yields a degenerate Gaussian.
 pub const STD_FLOOR: f64 = 1e-4;
 
-/// Likelihoods of surfaces more than this many standard deviations from the measurement are 0.
-const TAIL_CUTOFF: f64 = 10.0;
+/// Likelihoods of surfaces more than this many standard deviations from the measurement are 0:
+/// the mass beyond (below 1e-9) is nothing next to the voxels near the surface, and cutting
+/// there keeps the error function off most of a ray.
+pub const TAIL_CUTOFF: f64 = 6.0;
 
 /// A polynomial `c0 + c1 z + c2 z^2` (ascending coefficients, unused ones zero).
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -206,21 +208,13 @@ impl NoiseModel {
     /// assert!(m.likelihood_over(0, 0, 2.5, 2.6, 2.0) < 1e-100);
     /// ```
     pub fn likelihood_over(&self, u: u32, v: u32, z0: f64, z1: f64, measured: f64) -> f64 {
-        self.likelihood_within(u, v, z0, z1, measured, TAIL_CUTOFF)
-    }
-
-    /// [`NoiseModel::likelihood_over`] with the tail cut at `cutoff` standard deviations
-    /// instead of 10: engines that only need the likelihood up to a relative precision cut
-    /// earlier and skip the error function for most voxels.
-    #[inline]
-    pub fn likelihood_within(&self, u: u32, v: u32, z0: f64, z1: f64, measured: f64, cutoff: f64) -> f64 {
         let (b, s) = self.polys(u, v);
         let sigma = s.eval(0.5 * (z0 + z1)).max(STD_FLOOR);
         let w0 = z0 + b.eval(z0);
         let w1 = z1 + b.eval(z1);
         let (a, b) = ((w0 - measured) / sigma, (w1 - measured) / sigma);
-        if a > cutoff || b < -cutoff {
-            // Over `cutoff` std away (10: mass < 1e-23): zero next to any voxel near the surface.
+        if a > TAIL_CUTOFF || b < -TAIL_CUTOFF {
+            // Over `cutoff` std away: zero next to any voxel near the surface.
             return 0.0;
         }
         if w1 - w0 > 1e-3 * sigma {

@@ -25,7 +25,7 @@
 //! `(1 - m)^n` from a table. Factors within [`FACTOR_EPS`] of constant (voxels behind the
 //! surface that explains the reading) are skipped, those within it of `1 - m` counted as
 //! passes; the rest (about 25 per ray for a D435 at 0.02 m) are folded into the pdfs brick by
-//! brick in parallel. Likelihoods are cut at 6 std (mass below 1e-9). `engine_equals_plain_per_ray_updates`
+//! brick in parallel. Likelihoods are cut at 6 std ([`crate::frames::TAIL_CUTOFF`]). `engine_equals_plain_per_ray_updates`
 //! checks all of this against the plain per-ray update. Speed and memory against log-odds
 //! are in BENCHMARKS.md (about 10x slower per frame with 101 particles, 6x with 15).
 
@@ -108,11 +108,6 @@ pub fn crm_ray_factors(means: &[f64], nu: &[f64], nu_beyond: f64, out: &mut Vec<
 /// and within this of `1 - m` are counted as free passes: most voxels of a long window in
 /// front of or behind the surface, where the cause model gives them no weight to speak of.
 const FACTOR_EPS: f64 = 1e-6;
-
-/// Likelihoods more than this many standard deviations out are 0 (mass below 1e-9: such a
-/// voxel's factor is a free pass to within [`FACTOR_EPS`] anyway), which keeps the error
-/// function off most of a ray.
-const TAIL_CUTOFF: f64 = 6.0;
 
 /// Largest free-pass count with a precomputed power table; larger counts compose powers.
 const POWER_TABLE: usize = 64;
@@ -306,7 +301,7 @@ impl CrmEngine {
                         for_each_crossing(ray.origin, ray.dir, seg.start, seg.end, r, |c| {
                             // A beam with no return could not have been stopped by any voxel.
                             let nu = if ray.returned {
-                                noise.likelihood_within(ray.u, ray.v, c.s_in * ray.cz, c.s_out * ray.cz, z, TAIL_CUTOFF)
+                                noise.likelihood_over(ray.u, ray.v, c.s_in * ray.cz, c.s_out * ray.cz, z)
                             } else {
                                 0.0
                             };
@@ -334,7 +329,7 @@ impl CrmEngine {
                         });
                         let beyond = if seg.hits_surface {
                             let z_end = seg.end * ray.cz;
-                            noise.likelihood_within(ray.u, ray.v, z_end, z_end + r * ray.cz, z, TAIL_CUTOFF)
+                            noise.likelihood_over(ray.u, ray.v, z_end, z_end + r * ray.cz, z)
                         } else {
                             1.0 // max range, no return or clipped: the light passed the whole segment
                         };

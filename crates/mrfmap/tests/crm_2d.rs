@@ -45,3 +45,32 @@ fn crm_sigma_tracks_its_error_better_than_logodds() {
         assert!(c.mae < l.mae, "MAE {c:?} vs {l:?}");
     }
 }
+
+/// The CRM issue's conflict test, literally: a one-cell pole seen by two range scans. When
+/// the second scan's pose is off by one cell (misregistered), the pole's cell gets evidence
+/// for and against and keeps a higher variance than when both scans agree.
+#[test]
+fn misaligned_scans_of_a_thin_pole_keep_variance_high() {
+    let mut world = GridWorld::new(0.05, 40, 40).unwrap();
+    world.fill(20, 20, 21, 21); // the pole: cell (20, 20)
+    let pole = world.key(20, 20);
+    let run = |shift: f64| {
+        let mut crm = CrmEngine::new(world.cell, Default::default(), CrmParams::default()).unwrap();
+        let mut rng = Rng::new(9);
+        for round in 0..10 {
+            for (i, p) in [[0.5, 1.025], [1.525, 0.5]].iter().enumerate() {
+                let mut scan = world.scan(2 * round + i, *p, 720, 2.0, 0.01, &mut rng).unwrap();
+                if i == 1 {
+                    // The second sensor believes it is `shift` metres from where it is.
+                    scan.pose.translation.vector.y += shift;
+                }
+                crm.integrate_scan(&scan).unwrap();
+            }
+        }
+        crm.mean_variance(pole).unwrap()
+    };
+    let (consistent, misaligned) = (run(0.0), run(0.05));
+    println!("pole mean/variance: consistent {consistent:?}, misaligned {misaligned:?}");
+    assert!(consistent.0 > 0.8 && consistent.1 < 0.02, "{consistent:?}");
+    assert!(misaligned.1 > 3.0 * consistent.1, "{consistent:?} vs {misaligned:?}");
+}

@@ -42,7 +42,7 @@ use rustc_hash::FxHashMap;
 use super::Engine;
 use crate::error::{Error, Result};
 use crate::frames::{Frame, NoiseModel, RangeScan, default_noise_model};
-use crate::map::{BRICK_VOXELS, BrickKey, Grid, Map, MapVoxel, VoxelKey, mask_set, mask_slots};
+use crate::map::{BRICK_VOXELS, BrickKey, BrickList, Grid, Map, MapVoxel, VoxelKey, mask_set, mask_slots};
 use crate::rays::{RayLimits, Rays, for_each_crossing};
 
 /// Means are kept in `[MEAN_EPS, 1 - MEAN_EPS]` inside the cause model.
@@ -168,26 +168,20 @@ impl FrameBrick {
 /// A frame's updates, per brick, gathered by one block of rows (and merged in row order).
 #[derive(Default)]
 struct FrameUpdates {
-    index: FxHashMap<BrickKey, u32>,
-    bricks: Vec<(BrickKey, FrameBrick)>,
+    bricks: BrickList<FrameBrick>,
 }
 
 impl FrameUpdates {
     #[inline]
     fn brick(&mut self, key: BrickKey) -> usize {
-        let next = self.bricks.len() as u32;
-        let i = *self.index.entry(key).or_insert(next);
-        if i == next {
-            self.bricks.push((key, FrameBrick::new()));
-        }
-        i as usize
+        self.bricks.index_or_insert_with(key, FrameBrick::new)
     }
 
     /// Appends `other` (the rays after this block's), keeping ray order per brick.
     fn merge(mut self, other: FrameUpdates) -> FrameUpdates {
-        for (key, b) in other.bricks {
+        for (key, b) in other.bricks.into_items() {
             let i = self.brick(key);
-            let mine = &mut self.bricks[i].1;
+            let mine = self.bricks.value_mut(i);
             for (a, n) in mine.passes.iter_mut().zip(b.passes.iter()) {
                 *a += n;
             }
@@ -313,7 +307,7 @@ impl CrmEngine {
                                 // No cause weight here or before: the factor is exactly 1 - m,
                                 // whatever this voxel's mean, so it is only counted.
                                 let i = slot_of(&mut up, c.key);
-                                up.bricks[i].1.passes[c.key.slot()] += 1;
+                                up.bricks.value_mut(i).passes[c.key.slot()] += 1;
                                 return ControlFlow::Continue(());
                             }
                             let brick = c.key.brick();
@@ -343,7 +337,7 @@ impl CrmEngine {
                             // take back the passes counted on the way.
                             for_each_crossing(ray.origin, ray.dir, seg.start, seg.end, r, |c| {
                                 let i = slot_of(&mut up, c.key);
-                                up.bricks[i].1.passes[c.key.slot()] -= 1;
+                                up.bricks.value_mut(i).passes[c.key.slot()] -= 1;
                                 ControlFlow::Continue(())
                             });
                             continue;
@@ -361,9 +355,9 @@ impl CrmEngine {
                             }
                             let i = slot_of(&mut up, *key);
                             if (a + b).abs() <= FACTOR_EPS {
-                                up.bricks[i].1.passes[key.slot()] += 1; // 1 - m to within FACTOR_EPS
+                                up.bricks.value_mut(i).passes[key.slot()] += 1; // 1 - m to within FACTOR_EPS
                             } else {
-                                up.bricks[i].1.factors.push((key.slot() as u16, a as f32, b as f32));
+                                up.bricks.value_mut(i).factors.push((key.slot() as u16, a as f32, b as f32));
                             }
                         }
                     }
@@ -377,12 +371,12 @@ impl CrmEngine {
     /// Multiplies a frame's factors into the pdfs, brick by brick in parallel.
     fn apply(&mut self, updates: FrameUpdates) {
         let k = self.particles();
-        for (key, _) in &updates.bricks {
+        for (key, _) in updates.bricks.iter() {
             self.bricks.entry(*key).or_insert_with(CrmBrick::new);
         }
         let (grid, powers) = (&self.grid, &self.powers);
-        let mut work: Vec<(&mut CrmBrick, FrameBrick)> = Vec::with_capacity(updates.bricks.len());
-        let mut by_key: FxHashMap<BrickKey, FrameBrick> = updates.bricks.into_iter().collect();
+        let mut by_key: FxHashMap<BrickKey, FrameBrick> = updates.bricks.into_items().into_iter().collect();
+        let mut work: Vec<(&mut CrmBrick, FrameBrick)> = Vec::with_capacity(by_key.len());
         for (key, brick) in self.bricks.iter_mut() {
             if let Some(fb) = by_key.remove(key) {
                 work.push((brick, fb));

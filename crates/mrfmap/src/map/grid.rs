@@ -93,6 +93,59 @@ pub fn mask_slots(mask: &SlotMask) -> impl Iterator<Item = usize> + '_ {
     })
 }
 
+/// Bricks in first-seen order, each with a value: a hash index over a vector, so per-task
+/// scratch data (a scan's marks, a frame's counts) stays contiguous and comes out in a fixed
+/// order, whatever the hash.
+///
+/// ```
+/// use mrfmap::map::{BrickKey, BrickList};
+/// let mut list = BrickList::default();
+/// let a = list.index_or_insert_with(BrickKey([0, 0, 0]), || 0u32);
+/// *list.value_mut(a) += 5;
+/// assert_eq!(list.index_or_insert_with(BrickKey([0, 0, 0]), || 0), a);
+/// assert_eq!(list.into_items(), vec![(BrickKey([0, 0, 0]), 5)]);
+/// ```
+#[derive(Clone, Debug)]
+pub struct BrickList<T> {
+    index: FxHashMap<BrickKey, u32>,
+    items: Vec<(BrickKey, T)>,
+}
+
+impl<T> Default for BrickList<T> {
+    fn default() -> Self {
+        BrickList { index: FxHashMap::default(), items: Vec::new() }
+    }
+}
+
+impl<T> BrickList<T> {
+    /// Index of `key`'s entry, adding `new()` for a brick not seen before.
+    #[inline]
+    pub fn index_or_insert_with(&mut self, key: BrickKey, new: impl FnOnce() -> T) -> usize {
+        let next = self.items.len() as u32;
+        let i = *self.index.entry(key).or_insert(next);
+        if i == next {
+            self.items.push((key, new()));
+        }
+        i as usize
+    }
+
+    /// The value at index `i`.
+    #[inline]
+    pub fn value_mut(&mut self, i: usize) -> &mut T {
+        &mut self.items[i].1
+    }
+
+    /// Entries in first-seen order.
+    pub fn iter(&self) -> impl Iterator<Item = &(BrickKey, T)> + '_ {
+        self.items.iter()
+    }
+
+    /// The entries, in first-seen order.
+    pub fn into_items(self) -> Vec<(BrickKey, T)> {
+        self.items
+    }
+}
+
 /// 8x8x8 voxels with an allocation mask.
 #[derive(Clone, Debug)]
 pub struct Brick<V> {

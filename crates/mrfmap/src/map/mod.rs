@@ -7,7 +7,9 @@
 mod file;
 mod grid;
 
-pub use grid::{BRICK_EDGE, BRICK_VOXELS, Brick, BrickKey, Grid, SlotMask, VoxelKey, mask_has, mask_set, mask_slots};
+pub use grid::{
+    BRICK_EDGE, BRICK_VOXELS, Brick, BrickKey, BrickList, Grid, SlotMask, VoxelKey, mask_has, mask_set, mask_slots,
+};
 
 use std::collections::BTreeMap;
 use std::path::Path;

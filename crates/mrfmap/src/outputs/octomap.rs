@@ -289,7 +289,11 @@ pub fn read_octomap(path: &Path) -> Result<OctomapTree> {
     if size > 0 {
         let mut pos = 0;
         tree.nodes = 1;
-        read_node(&data, &mut pos, 0, [0; 3], &mut tree).map_err(|m| bad(m.to_string()))?;
+        match format {
+            OctomapFormat::Binary => read_bt_node(&data, &mut pos, 0, [0; 3], &mut tree),
+            OctomapFormat::Full => read_ot_node(&data, &mut pos, 0, [0; 3], &mut tree),
+        }
+        .map_err(|m| bad(m.to_string()))?;
         if pos != data.len() {
             return Err(bad(format!("{} bytes after the tree", data.len() - pos)));
         }
@@ -300,63 +304,48 @@ pub fn read_octomap(path: &Path) -> Result<OctomapTree> {
     Ok(tree)
 }
 
+/// Result of reading part of a tree: the error says what is wrong with the data.
+type ReadResult = std::result::Result<(), &'static str>;
+
 fn take<'a>(data: &'a [u8], pos: &mut usize, n: usize) -> std::result::Result<&'a [u8], &'static str> {
     let s = data.get(*pos..*pos + n).ok_or("data ends inside the tree")?;
     *pos += n;
     Ok(s)
 }
 
-/// Reads the node at `depth` whose key prefix (lower corner) is `key`.
-fn read_node(
-    data: &[u8],
-    pos: &mut usize,
-    depth: u32,
-    key: [u16; 3],
-    tree: &mut OctomapTree,
-) -> std::result::Result<(), &'static str> {
+/// Key (lower corner) of child `i` of the node at `depth` whose key is `key`.
+fn child_key(key: [u16; 3], depth: u32, i: usize) -> [u16; 3] {
+    let bit = TREE_DEPTH - 1 - depth;
+    [0, 1, 2].map(|a| key[a] | (((i >> a) & 1) as u16) << bit)
+}
+
+/// `.bt`: the inner node at `depth` with key `key` (two bytes of child codes), then its
+/// inner children.
+fn read_bt_node(data: &[u8], pos: &mut usize, depth: u32, key: [u16; 3], tree: &mut OctomapTree) -> ReadResult {
     if depth >= TREE_DEPTH {
         return Err("tree deeper than 16 levels");
     }
-    let child_key = |i: usize| {
-        let bit = TREE_DEPTH - 1 - depth;
-        [0, 1, 2].map(|a| key[a] | (((i >> a) & 1) as u16) << bit)
-    };
-    match tree.format {
-        OctomapFormat::Binary => {
-            let b = take(data, pos, 2)?;
-            let codes: Vec<u8> = (0..8).map(|i| (b[i / 4] >> (2 * (i % 4))) & 3).collect();
-            for (i, &code) in codes.iter().enumerate() {
-                match code {
-                    0b10 | 0b01 => {
-                        tree.nodes += 1;
-                        let value = if code == 0b10 { 1.0 } else { -1.0 };
-                        tree.leaves.push(OctomapLeaf { depth: depth + 1, key: child_key(i), value });
-                    }
-                    0b11 => tree.nodes += 1,
-                    _ => {}
-                }
-            }
-            for (i, &code) in codes.iter().enumerate() {
-                if code == 0b11 {
-                    read_node(data, pos, depth + 1, child_key(i), tree)?;
-                }
-            }
+    let b = take(data, pos, 2)?;
+    let codes: Vec<u8> = (0..8).map(|i| (b[i / 4] >> (2 * (i % 4))) & 3).collect();
+    for (i, &code) in codes.iter().enumerate() {
+        if code != 0 {
+            tree.nodes += 1;
         }
-        OctomapFormat::Full => {
-            read_ot_children(data, pos, depth, key, tree)?;
+        if code == 0b10 || code == 0b01 {
+            let value = if code == 0b10 { 1.0 } else { -1.0 };
+            tree.leaves.push(OctomapLeaf { depth: depth + 1, key: child_key(key, depth, i), value });
+        }
+    }
+    for (i, &code) in codes.iter().enumerate() {
+        if code == 0b11 {
+            read_bt_node(data, pos, depth + 1, child_key(key, depth, i), tree)?;
         }
     }
     Ok(())
 }
 
-/// `.ot`: the node at `pos` (value, child mask), then its children.
-fn read_ot_children(
-    data: &[u8],
-    pos: &mut usize,
-    depth: u32,
-    key: [u16; 3],
-    tree: &mut OctomapTree,
-) -> std::result::Result<(), &'static str> {
+/// `.ot`: the node at `depth` with key `key` (value, child mask), then its children.
+fn read_ot_node(data: &[u8], pos: &mut usize, depth: u32, key: [u16; 3], tree: &mut OctomapTree) -> ReadResult {
     let b = take(data, pos, 5)?;
     let value = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
     let mask = b[4];
@@ -367,13 +356,9 @@ fn read_ot_children(
     if depth >= TREE_DEPTH {
         return Err("tree deeper than 16 levels");
     }
-    let bit = TREE_DEPTH - 1 - depth;
-    for i in 0..8 {
-        if mask >> i & 1 == 1 {
-            tree.nodes += 1;
-            let k = [0, 1, 2].map(|a| key[a] | (((i >> a) & 1) as u16) << bit);
-            read_ot_children(data, pos, depth + 1, k, tree)?;
-        }
+    for i in (0..8).filter(|i| mask >> i & 1 == 1) {
+        tree.nodes += 1;
+        read_ot_node(data, pos, depth + 1, child_key(key, depth, i), tree)?;
     }
     Ok(())
 }

@@ -4,12 +4,15 @@
 //!
 //! The modules follow the data's path:
 //!
-//! - [`source`]: where frames come from — TUM / ICL-NUIM datasets and the scene simulator;
-//! - [`frames`]: one reading — depth image, camera, pose, noise model;
-//! - [`rays`]: pixel rays and exact voxel traversal;
-//! - [`inference`]: the engines (log-odds, MRF) behind one [`inference::Engine`] trait;
+//! - [`source`]: where frames come from — TUM / ICL-NUIM datasets, the scene simulator and
+//!   planar cell worlds with a simulated range scanner;
+//! - [`frames`]: one reading — depth image or range scan, camera, pose, noise model (and its
+//!   calibration from image pairs);
+//! - [`rays`]: pixel and beam rays and exact voxel traversal;
+//! - [`inference`]: the engines (log-odds, MRF, CRM) behind one [`inference::Engine`] trait;
 //! - [`map`]: the sparse bricked voxel grid and the finished [`map::Map`] with its file format;
-//! - [`outputs`]: exports (PLY), the accuracy metric, ground-truth metrics and pictures.
+//! - [`outputs`]: exports (PLY, OctoMap), the accuracy metric, ground-truth metrics and
+//!   pictures.
 //!
 //! ```no_run
 //! use mrfmap::inference::{EngineConfig, EngineKind, new_engine};

@@ -462,3 +462,24 @@ fn view_pictures_and_slices() {
         assert!(!o.status.success() && stderr(&o).contains(needle) && !bad.exists(), "{args:?}: {}", stderr(&o));
     }
 }
+
+#[test]
+fn crm_2d_experiment_writes_its_report() {
+    let dir = workdir("crm2d");
+    let out = dir.join("crm2d");
+    let o = run(&["experiment", "crm-2d", "-o", s(&out), "--repeat", "1"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let report = std::fs::read_to_string(out.join("report.md")).unwrap();
+    for needle in ["| MAE | CRM, 101 particles", "| PCC(sigma, abs error) | log-odds", "ISM sweep at 1 s noise"] {
+        assert!(report.contains(needle), "missing {needle:?}");
+    }
+    // 48 sweep rows.
+    assert_eq!(
+        report
+            .lines()
+            .filter(|l| l.starts_with("| 0.05 |") || l.starts_with("| 0.20 |") || l.starts_with("| 0.40 |"))
+            .count(),
+        48
+    );
+    assert!(out.join("crm2d_maps.png").is_file());
+}

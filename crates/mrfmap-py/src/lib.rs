@@ -8,13 +8,13 @@
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
-use mrfmap::frames::{Camera, DepthImage, Frame, NoiseModel, Pose};
+use mrfmap::frames::{Beam, Camera, DepthImage, Frame, NoiseModel, Pose, RangeScan};
 use mrfmap::inference::{CrmParams, Engine, EngineConfig, EngineKind, KeyframeId, MrfEngine, MrfParams, new_engine};
 use mrfmap::map::{Map, VoxelKey};
 use mrfmap::outputs::{OctomapFormat, PlyOptions, write_octomap, write_ply};
 use mrfmap::rays::RayLimits;
 use nalgebra::{Matrix3, Rotation3, Translation3, UnitQuaternion};
-use numpy::{PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray2};
+use numpy::{PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2};
 use pyo3::exceptions::{PyOSError, PyValueError};
 use pyo3::prelude::*;
 
@@ -99,6 +99,13 @@ impl Inner {
         match self {
             Inner::Mrf(e) => e.as_ref(),
             Inner::Online(e) => e.as_ref(),
+        }
+    }
+
+    fn engine_mut(&mut self) -> &mut dyn Engine {
+        match self {
+            Inner::Mrf(e) => e.as_mut(),
+            Inner::Online(e) => e.as_mut(),
         }
     }
 }
@@ -220,6 +227,51 @@ impl Mapper {
             .map_err(py_err)?;
         *count += 1;
         Ok(id)
+    }
+
+    /// Adds a range scan: beam directions (N, 3) in the sensor frame, ranges (N,) in metres
+    /// (NaN, infinity or <= 0: no return, free up to `max_range`), sensor pose 4x4.
+    fn add_scan(
+        &self,
+        py: Python<'_>,
+        pose: &Bound<'_, PyAny>,
+        directions: &Bound<'_, PyAny>,
+        ranges: &Bound<'_, PyAny>,
+        max_range: f64,
+    ) -> PyResult<u64> {
+        let pose = pose_of(pose, "pose")?;
+        let Some((n, 3, dirs)) = floats_2d(directions) else {
+            return Err(PyValueError::new_err(format!(
+                "directions: need an (N, 3) float64 or float32 array, got {}",
+                describe(directions)
+            )));
+        };
+        let ranges: Vec<f64> = if let Ok(a) = ranges.extract::<PyReadonlyArray1<'_, f64>>() {
+            a.as_array().to_vec()
+        } else if let Ok(a) = ranges.extract::<PyReadonlyArray1<'_, f32>>() {
+            a.as_array().iter().map(|r| *r as f64).collect()
+        } else {
+            return Err(PyValueError::new_err(format!(
+                "ranges: need a 1-D float64 or float32 array, got {}",
+                describe(ranges)
+            )));
+        };
+        if ranges.len() != n {
+            return Err(PyValueError::new_err(format!("ranges: {} values for {n} directions", ranges.len())));
+        }
+        let beams = (0..n)
+            .map(|k| Beam {
+                dir: [dirs[3 * k], dirs[3 * k + 1], dirs[3 * k + 2]],
+                range: (ranges[k].is_finite() && ranges[k] > 0.0).then_some(ranges[k]),
+            })
+            .collect();
+        // A camera's per-patch model means nothing for a scan; an aggregate one is in range.
+        let noise = self.noise.clone().filter(|n| n.patches.is_none());
+        let mut count = self.frames.lock().unwrap_or_else(|p| p.into_inner());
+        let scan = RangeScan::new(*count, pose, beams, max_range, noise).map_err(py_err)?;
+        py.detach(|| self.lock().engine_mut().integrate_scan(&scan)).map_err(py_err)?;
+        *count += 1;
+        Ok(scan.index as u64)
     }
 
     /// MRF: removes a keyframe (as if it had never been added, once re-run).

@@ -109,3 +109,39 @@ def test_module_docstring_example():
     import doctest
 
     assert doctest.testmod(mrfmap, raise_on_error=True).attempted > 0
+
+
+@pytest.mark.parametrize("engine", ["logodds", "crm"])
+def test_range_scan_ring(engine):
+    m = mrfmap.Mapper(0.05, engine=engine, particles=21, **CAM)
+    angles = np.linspace(0, 2 * np.pi, 720, endpoint=False)
+    dirs = np.stack([np.cos(angles), np.sin(angles), np.zeros_like(angles)], axis=1)
+    ranges = np.full(720, 2.0)
+    ranges[::10] = np.nan  # no return
+    pose = np.eye(4)
+    pose[2, 3] = 0.025
+    for _ in range(3):
+        m.add_scan(pose, dirs, ranges, 4.0)
+    # Along beams 5 and 365 (which return): free at 1 m, occupied just before 2 m.
+    pts = [[r * np.cos(angles[k]), r * np.sin(angles[k]), 0.025] for k, r in [(5, 1.0), (5, 1.999), (365, 1.999)]]
+    occ, _ = m.query(np.array(pts))
+    assert occ[0] < 0.5 < occ[1] and occ[2] > 0.5
+    # Beam 0 returned nothing: free out to the 4 m range, past the ring.
+    far, _ = m.query(np.array([[3.0, 0.0, 0.025]]))
+    assert far[0] < 0.5
+
+
+def test_range_scan_bad_input():
+    m = mrfmap.Mapper(0.05, **CAM)
+    dirs = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    with pytest.raises(ValueError, match="ranges"):
+        m.add_scan(np.eye(4), dirs, np.array([1.0]), 4.0)
+    with pytest.raises(ValueError, match="directions"):
+        m.add_scan(np.eye(4), np.zeros((2, 2)), np.array([1.0, 1.0]), 4.0)
+    with pytest.raises(ValueError, match="beam 0"):
+        m.add_scan(np.eye(4), np.zeros((2, 3)), np.array([1.0, 1.0]), 4.0)
+    with pytest.raises(ValueError, match="maximum range"):
+        m.add_scan(np.eye(4), dirs, np.array([1.0, 1.0]), -1.0)
+    mrf = mrfmap.Mapper(0.05, engine="mrf", **CAM)
+    with pytest.raises(ValueError, match="depth images only"):
+        mrf.add_scan(np.eye(4), dirs, np.array([1.0, 1.0]), 4.0)

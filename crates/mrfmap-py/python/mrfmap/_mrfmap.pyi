@@ -47,6 +47,18 @@ class Mapper:
         ``depth_scale`` (units per metre). Returns the frame's id (the keyframe id for the
         MRF engine). Raises ``ValueError`` on a wrong dtype or shape, a NaN or non-rigid pose.
         """
+    def add_scan(
+        self,
+        pose: npt.NDArray[np.float64],
+        directions: npt.NDArray[np.float64],
+        ranges: npt.NDArray[np.float64],
+        max_range: float,
+    ) -> int:
+        """Adds a range scan (planar laser, lidar): beam directions (N, 3) in the sensor frame,
+        ranges (N,) in metres (NaN, infinity or <= 0: no return, free up to ``max_range``),
+        sensor-to-world ``pose`` (4x4). Log-odds and CRM only (``ValueError`` for the MRF).
+        The mapper's noise model applies in range when it has no per-patch table.
+        """
     def remove_keyframe(self, id: int) -> None:
         """MRF only: removes a keyframe; after ``run`` the map is as if it was never added."""
     def set_pose(self, id: int, pose: npt.NDArray[np.float64]) -> None:

@@ -4,20 +4,12 @@
 
 use mrfmap::inference::{CrmEngine, CrmParams, Engine, LogOddsEngine, LogOddsParams, SensorModel};
 use mrfmap::map::Map;
-use mrfmap::outputs::{TruthMetrics, VoxelTruth, mean_sigma, metrics_of};
+use mrfmap::outputs::{TruthMetrics, grid_world_truths, metrics_of};
 use mrfmap::random::Rng;
 use mrfmap::source::GridWorld;
 
 fn metrics(world: &GridWorld, map: &Map, prior_sigma: f64) -> TruthMetrics {
-    let mut cells = Vec::new();
-    for y in 0..world.height {
-        for x in 0..world.width {
-            let truth = if world.is_occupied(x as i64, y as i64) { 1.0 } else { 0.0 };
-            let (mean, sigma) = map.voxels.get(world.key(x, y)).map_or((0.5, prior_sigma), |v| mean_sigma(map, v));
-            cells.push(VoxelTruth { truth, mean, sigma });
-        }
-    }
-    metrics_of(&cells)
+    metrics_of(&grid_world_truths(world, map, (0.5, prior_sigma)))
 }
 
 #[test]

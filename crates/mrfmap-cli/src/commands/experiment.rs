@@ -15,7 +15,7 @@ use mrfmap::frames::RangeScan;
 use mrfmap::inference::{CrmEngine, CrmParams, Engine, LogOddsEngine, LogOddsParams, SensorModel};
 use mrfmap::map::Map;
 use mrfmap::outputs::pictures::{viridis, write_text};
-use mrfmap::outputs::{Canvas, TruthMetrics, VoxelTruth, metrics_of};
+use mrfmap::outputs::{Canvas, TruthMetrics, VoxelTruth, grid_world_truths, metrics_of};
 use mrfmap::random::Rng;
 use mrfmap::source::GridWorld;
 
@@ -105,22 +105,6 @@ impl Method {
     }
 }
 
-/// Truth, mean and sigma of every cell (row-major from the bottom row).
-fn cells(world: &GridWorld, map: &Map, method: &Method) -> Vec<VoxelTruth> {
-    let mut out = Vec::with_capacity(world.width * world.height);
-    for y in 0..world.height {
-        for x in 0..world.width {
-            let truth = if world.is_occupied(x as i64, y as i64) { 1.0 } else { 0.0 };
-            let (mean, sigma) = match map.voxels.get(world.key(x, y)) {
-                Some(v) => mrfmap::outputs::mean_sigma(map, v),
-                None => method.prior(),
-            };
-            out.push(VoxelTruth { truth, mean, sigma });
-        }
-    }
-    out
-}
-
 /// The paper's 48 ramp settings: q_high - 0.5 = 0.5 - q_low, r_ramp, r_top.
 fn sweep() -> Vec<SensorModel> {
     let mut out = Vec::new();
@@ -154,7 +138,7 @@ fn evaluate(method: Method, world: &GridWorld, scans: &[RangeScan], repeat: u32)
         map = Some(m);
     }
     let map = map.expect("at least one run");
-    let cells = cells(world, &map, &method);
+    let cells = grid_world_truths(world, &map, method.prior());
     let seen: Vec<VoxelTruth> = (0..world.height)
         .flat_map(|y| (0..world.width).map(move |x| (x, y)))
         .zip(&cells)

@@ -26,5 +26,6 @@ pub use octomap::{OctomapFormat, OctomapLeaf, OctomapSummary, OctomapTree, TREE_
 pub use ply::{PlyOptions, PlyVertices, read_ply, write_ply};
 pub use render::{Colouring, View, render_map, slice_map};
 pub use truth::{
-    TruthMetrics, VoxelTruth, mean_sigma, metrics_of, pearson, roc_auc, true_occupancy, truth_metrics, voxel_truths,
+    TruthMetrics, VoxelTruth, grid_world_truths, mean_sigma, metrics_of, pearson, roc_auc, true_occupancy,
+    truth_metrics, voxel_truths,
 };

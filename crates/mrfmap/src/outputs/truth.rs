@@ -9,7 +9,7 @@
 //! the Pearson correlation of `sigma` with `|e|`.
 
 use crate::map::{Map, MapVoxel, VoxelKey};
-use crate::source::Scene;
+use crate::source::{GridWorld, Scene};
 
 /// Lattice points per axis used for a voxel's true occupancy.
 const SAMPLES: usize = 4;
@@ -86,6 +86,33 @@ pub fn voxel_truths(map: &Map, scene: &Scene) -> Vec<(VoxelKey, VoxelTruth)> {
             (k, VoxelTruth { truth: true_occupancy(scene, k, r), mean, sigma })
         })
         .collect()
+}
+
+/// Truth, mean and sigma of every cell of a planar world (row-major from the bottom row), for
+/// a map built in its voxel layer. Cells the map does not have take `prior` (mean, sigma):
+/// in a 2D study unobserved cells count, at what the engine would say about them.
+///
+/// ```
+/// use mrfmap::map::{Map, MapVoxel};
+/// use mrfmap::source::GridWorld;
+/// let mut world = GridWorld::new(0.1, 2, 1).unwrap();
+/// world.fill(1, 0, 2, 1);
+/// let mut map = Map::new("logodds", 0.1).unwrap();
+/// map.voxels.insert(world.key(1, 0), MapVoxel { occupancy: 0.9, variance: 0.0 });
+/// let cells = mrfmap::outputs::grid_world_truths(&world, &map, (0.5, 0.5));
+/// assert_eq!((cells[0].truth, cells[0].mean), (0.0, 0.5));
+/// assert_eq!(cells[1].truth, 1.0);
+/// ```
+pub fn grid_world_truths(world: &GridWorld, map: &Map, prior: (f64, f64)) -> Vec<VoxelTruth> {
+    let mut out = Vec::with_capacity(world.width * world.height);
+    for y in 0..world.height {
+        for x in 0..world.width {
+            let truth = if world.is_occupied(x as i64, y as i64) { 1.0 } else { 0.0 };
+            let (mean, sigma) = map.voxels.get(world.key(x, y)).map_or(prior, |v| mean_sigma(map, v));
+            out.push(VoxelTruth { truth, mean, sigma });
+        }
+    }
+    out
 }
 
 /// All metrics of `map` against `scene`, over the map's allocated voxels.

@@ -68,6 +68,15 @@ fn dataset(dir: &Path) -> PathBuf {
     data
 }
 
+/// Simulates the scene into `dir/data` and builds `dir/m.mrfmap` from it (log-odds, 0.05 m).
+fn logodds_map(dir: &Path) -> PathBuf {
+    let data = dataset(dir);
+    let map = dir.join("m.mrfmap");
+    let o = run(&["build", s(&data), "-o", s(&map), "--resolution", "0.05", "-q"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    map
+}
+
 fn s(p: &Path) -> &str {
     p.to_str().unwrap()
 }
@@ -393,10 +402,7 @@ fn calibrate_and_plot_noise() {
 #[test]
 fn octomap_export() {
     let dir = workdir("octomap");
-    let data = dataset(&dir);
-    let map = dir.join("m.mrfmap");
-    let o = run(&["build", s(&data), "-o", s(&map), "--resolution", "0.05", "-q"]);
-    assert!(o.status.success(), "{}", stderr(&o));
+    let map = logodds_map(&dir);
     let (bt, ot) = (dir.join("m.bt"), dir.join("m.ot"));
     let o = run(&["export", s(&map), "--bt", s(&bt), "--ot", s(&ot)]);
     assert!(o.status.success(), "{}", stderr(&o));
@@ -429,10 +435,7 @@ fn octomap_export() {
 #[test]
 fn view_pictures_and_slices() {
     let dir = workdir("view");
-    let data = dataset(&dir);
-    let map = dir.join("m.mrfmap");
-    let o = run(&["build", s(&data), "-o", s(&map), "--resolution", "0.05", "-q"]);
-    assert!(o.status.success(), "{}", stderr(&o));
+    let map = logodds_map(&dir);
     let png = dir.join("v.png");
     let o = run(&["view", s(&map), "-o", s(&png), "--size", "320x240", "--color", "sigma"]);
     assert!(o.status.success(), "{}", stderr(&o));

@@ -42,7 +42,7 @@ use rustc_hash::FxHashMap;
 use super::Engine;
 use crate::error::{Error, Result};
 use crate::frames::{Frame, NoiseModel, RangeScan, default_noise_model};
-use crate::map::{BRICK_VOXELS, BrickKey, BrickList, Grid, Map, MapVoxel, VoxelKey, mask_set, mask_slots};
+use crate::map::{BRICK_VOXELS, BrickKey, BrickList, Map, MapVoxel, VoxelKey, check_resolution, mask_set, mask_slots};
 use crate::rays::{RayLimits, Rays, for_each_crossing};
 
 /// Means are kept in `[MEAN_EPS, 1 - MEAN_EPS]` inside the cause model.
@@ -51,7 +51,8 @@ const MEAN_EPS: f64 = 1e-9;
 /// Parameters of the CRM engine.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct CrmParams {
-    /// Particles per voxel pdf (the reference: 101).
+    /// Particles per voxel pdf (the reference: 101). Each allocated voxel costs
+    /// `4 * (particles + 1)` bytes (pdf and cached mean), plus 1 KiB of slot table per brick.
     pub particles: usize,
 }
 
@@ -216,7 +217,7 @@ impl CrmEngine {
         if !(2..=65_535).contains(&k) {
             return Err(Error::Invalid(format!("CRM needs 2 to 65535 particles, got {k}")));
         }
-        Grid::<u8>::new(resolution)?; // validates the resolution
+        check_resolution(resolution)?;
         limits.validate()?;
         let grid: Vec<f32> = (0..k).map(|j| (j as f64 / (k - 1) as f64) as f32).collect();
         let powers =
@@ -234,12 +235,6 @@ impl CrmEngine {
     /// Particles per voxel.
     pub fn particles(&self) -> usize {
         self.grid.len()
-    }
-
-    /// Bytes of voxel state per allocated voxel: the pdf and the cached mean (the brick's
-    /// slot table, 1 KB per brick, comes on top).
-    pub fn bytes_per_voxel(&self) -> usize {
-        4 * (self.particles() + 1)
     }
 
     /// Number of allocated voxels.

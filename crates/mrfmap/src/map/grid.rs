@@ -93,6 +93,14 @@ pub fn mask_slots(mask: &SlotMask) -> impl Iterator<Item = usize> + '_ {
     })
 }
 
+/// Checks a voxel edge: a positive, finite number of metres.
+pub fn check_resolution(resolution: f64) -> crate::Result<()> {
+    if !(resolution > 0.0 && resolution.is_finite()) {
+        return Err(crate::Error::Invalid(format!("resolution must be a positive number of metres, got {resolution}")));
+    }
+    Ok(())
+}
+
 /// Bricks in first-seen order, each with a value: a hash index over a vector, so per-task
 /// scratch data (a scan's marks, a frame's counts) stays contiguous and comes out in a fixed
 /// order, whatever the hash.
@@ -214,11 +222,7 @@ pub struct Grid<V> {
 impl<V: Copy + Default> Grid<V> {
     /// An empty grid; the resolution (voxel edge in metres) must be positive and finite.
     pub fn new(resolution: f64) -> crate::Result<Self> {
-        if !(resolution > 0.0 && resolution.is_finite()) {
-            return Err(crate::Error::Invalid(format!(
-                "resolution must be a positive number of metres, got {resolution}"
-            )));
-        }
+        check_resolution(resolution)?;
         Ok(Grid { resolution, bricks: FxHashMap::default() })
     }
 

@@ -23,7 +23,12 @@ fn crm_sigma_tracks_its_error_better_than_logodds() {
             .map(|(i, p)| world.scan(i, *p, 60, 1.0, cells_of_noise * world.cell, &mut rng).unwrap())
             .collect();
         let mut crm = CrmEngine::new(world.cell, Default::default(), CrmParams::default()).unwrap();
-        let params = LogOddsParams { model: SensorModel::CRM_PAPER, clamp_min: 1e-3, clamp_max: 1.0 - 1e-3 };
+        let params = LogOddsParams {
+            model: SensorModel::CRM_PAPER,
+            clamp_min: 1e-3,
+            clamp_max: 1.0 - 1e-3,
+            ..Default::default()
+        };
         let mut lo = LogOddsEngine::new(world.cell, Default::default(), params).unwrap();
         for s in &scans {
             crm.integrate_scan(s).unwrap();

@@ -3,7 +3,7 @@
 
 use std::path::PathBuf;
 
-use mrfmap::inference::{Engine, LogOddsEngine, LogOddsParams};
+use mrfmap::inference::{Engine, LogOddsEngine, LogOddsParams, Marking};
 use mrfmap::source::Dataset;
 
 fn shared(name: &str) -> Option<PathBuf> {
@@ -64,7 +64,8 @@ fn coffin_world_loads_with_patch_noise_and_truth() {
 }
 
 /// OctoMap 1.9.7 on these five frames, no max range: 15,444 occupied voxels at 0.05 m and
-/// 104,758 at 0.02 m. Our log-odds engine must agree within 3%.
+/// 104,758 at 0.02 m. Our log-odds engine must agree within 3%, and finding the crossed voxels
+/// by projection must give the same map as walking every ray.
 #[test]
 fn logodds_matches_octomap_occupied_counts() {
     let Some(root) = shared("icl-livingroom-5") else {
@@ -73,13 +74,23 @@ fn logodds_matches_octomap_occupied_counts() {
     let ds = Dataset::open(&root).unwrap();
     let frames: Vec<_> = (0..ds.len()).map(|i| ds.frame(i).unwrap()).collect();
     for (resolution, octomap) in [(0.05, 15_444.0), (0.02, 104_758.0)] {
-        let mut e = LogOddsEngine::new(resolution, Default::default(), LogOddsParams::default()).unwrap();
-        for f in &frames {
-            e.integrate(f).unwrap();
-        }
-        let occupied = e.map().occupied_count() as f64;
+        let build = |marking| {
+            let params = LogOddsParams { marking, ..Default::default() };
+            let mut e = LogOddsEngine::new(resolution, Default::default(), params).unwrap();
+            for f in &frames {
+                e.integrate(f).unwrap();
+            }
+            e
+        };
+        let (walk, project) = (build(Marking::Walk), build(Marking::Project));
+        let occupied = project.map().occupied_count() as f64;
         let rel = (occupied - octomap) / octomap;
         eprintln!("resolution {resolution}: {occupied} occupied, OctoMap {octomap}, {:+.2}%", rel * 100.0);
         assert!(rel.abs() < 0.03, "resolution {resolution}: {occupied} vs OctoMap {octomap} ({:+.2}%)", rel * 100.0);
+        let (a, b) = (walk.log_odds(), project.log_odds());
+        let differ = a.iter().filter(|(k, l)| b.get(*k) != Some(*l)).count()
+            + b.iter().filter(|(k, _)| a.get(*k).is_none()).count();
+        eprintln!("resolution {resolution}: {differ} of {} voxels differ between walking and projecting", a.len());
+        assert!(differ * 100_000 <= a.len(), "{differ} of {} voxels differ", a.len());
     }
 }

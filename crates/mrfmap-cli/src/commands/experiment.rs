@@ -84,7 +84,7 @@ impl Method {
             Method::LogOdds(model) => Box::new(LogOddsEngine::new(
                 cell,
                 Default::default(),
-                LogOddsParams { model, clamp_min: 1e-3, clamp_max: 1.0 - 1e-3 },
+                LogOddsParams { model, clamp_min: 1e-3, clamp_max: 1.0 - 1e-3, ..Default::default() },
             )?),
         };
         let t = Instant::now();

@@ -20,8 +20,8 @@ use rustc_hash::FxHashMap;
 use super::{Engine, logit, sigmoid};
 use crate::error::{Error, Result};
 use crate::frames::{Frame, RangeScan};
-use crate::map::{BrickKey, BrickList, Grid, Map, MapVoxel, SlotMask, VoxelKey, mask_slots};
-use crate::rays::{PixelRay, RayLimits, Rays, for_each_crossing};
+use crate::map::{BrickKey, BrickList, Grid, Map, MapVoxel, SlotMask, VoxelKey, mask_set, mask_slots};
+use crate::rays::{CrossedVoxels, PixelRay, Projector, RayLimits, Rays, for_each_crossing};
 
 /// How one ray changes the voxels it crosses (occupancy probabilities, turned into log-odds).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -101,12 +101,30 @@ pub struct LogOddsParams {
     pub clamp_min: f64,
     /// Upper clamp as a probability (OctoMap: 0.971).
     pub clamp_max: f64,
+    /// How the hit/miss model finds the voxels a depth image's rays cross.
+    pub marking: Marking,
 }
 
 impl Default for LogOddsParams {
     fn default() -> Self {
-        LogOddsParams { model: SensorModel::OCTOMAP, clamp_min: 0.1192, clamp_max: 0.971 }
+        LogOddsParams { model: SensorModel::OCTOMAP, clamp_min: 0.1192, clamp_max: 0.971, marking: Marking::Project }
     }
+}
+
+/// How [`SensorModel::HitMiss`] finds the voxels the rays of a depth image cross. Both give
+/// the same voxels (up to rays that graze a voxel's edge or corner); range scans are always
+/// walked.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Marking {
+    /// Walk every ray ([`for_each_crossing`]): work grows with the number of rays times
+    /// their length.
+    Walk,
+    /// Project boxes of voxels into the image ([`crossed_voxels`]): work grows with the
+    /// number of voxels in view; several times faster on 640x480 images.
+    ///
+    /// [`crossed_voxels`]: crate::rays::Projector::crossed_voxels
+    #[default]
+    Project,
 }
 
 /// Log-odds occupancy mapping.
@@ -123,6 +141,8 @@ pub struct LogOddsEngine {
     params: LogOddsParams,
     min: f32,
     max: f32,
+    /// Buffers for [`Marking::Project`], kept between frames.
+    projector: Projector,
 }
 
 impl LogOddsEngine {
@@ -139,6 +159,7 @@ impl LogOddsEngine {
             params,
             min: logit(p.clamp_min) as f32,
             max: logit(p.clamp_max) as f32,
+            projector: Projector::default(),
         })
     }
 
@@ -155,14 +176,17 @@ impl LogOddsEngine {
 
     fn integrate_rays(&mut self, rays: &Rays) {
         match self.params.model {
-            SensorModel::HitMiss { p_hit, p_miss } => self.integrate_hit_miss(rays, p_hit, p_miss),
+            SensorModel::HitMiss { .. } => {
+                self.apply_marks(ScanMarks::of_rays(rays, self.grid.resolution(), &self.limits))
+            }
             SensorModel::Ramp { .. } => self.integrate_ramp(rays),
         }
     }
 
-    fn integrate_hit_miss(&mut self, rays: &Rays, p_hit: f64, p_miss: f64) {
+    /// Applies one scan's hit/miss marks: each marked voxel is updated once.
+    fn apply_marks(&mut self, marks: ScanMarks) {
+        let SensorModel::HitMiss { p_hit, p_miss } = self.params.model else { unreachable!("hit/miss marks") };
         let (hit, miss) = (logit(p_hit) as f32, logit(p_miss) as f32);
-        let marks = ScanMarks::of_rays(rays, self.grid.resolution(), &self.limits);
         for (key, m) in marks.bricks {
             let brick = self.grid.brick_or_insert(key);
             for slot in mask_slots(&m.hit) {
@@ -231,7 +255,13 @@ impl Engine for LogOddsEngine {
     }
 
     fn integrate(&mut self, frame: &Frame) -> Result<()> {
-        self.integrate_rays(&Rays::of_frame(frame));
+        match (self.params.model, self.params.marking) {
+            (SensorModel::HitMiss { .. }, Marking::Project) => {
+                let crossed = self.projector.crossed_voxels(frame, &self.limits, self.grid.resolution());
+                self.apply_marks(ScanMarks::of_crossed(crossed));
+            }
+            _ => self.integrate_rays(&Rays::of_frame(frame)),
+        }
         Ok(())
     }
 
@@ -284,6 +314,18 @@ impl ScanMarks {
             })
             .map(RowMarker::finish)
             .reduce(ScanMarks::default, ScanMarks::merge)
+    }
+
+    fn of_crossed(c: CrossedVoxels) -> Self {
+        let mut bricks: FxHashMap<BrickKey, BrickMarks> =
+            c.crossed.into_iter().map(|(k, free)| (k, BrickMarks { free, hit: [0; 8] })).collect();
+        for key in c.ends {
+            // The end voxel is crossed too; it is in `crossed` unless the segment only
+            // touches it, and then it is the voxel the walk would have ended in.
+            let m = bricks.entry(key.brick()).or_default();
+            mask_set(&mut m.hit, key.slot());
+        }
+        ScanMarks { bricks }
     }
 
     fn merge(mut self, mut other: ScanMarks) -> ScanMarks {

@@ -22,7 +22,7 @@ use std::fmt;
 use std::str::FromStr;
 
 pub use crm::{CrmEngine, CrmParams, crm_ray_factors};
-pub use logodds::{LogOddsEngine, LogOddsParams, SensorModel};
+pub use logodds::{LogOddsEngine, LogOddsParams, Marking, SensorModel};
 pub use mrf::{Allocation, KeyframeId, KeyframeSelection, MU_EPS, MrfEngine, MrfParams, ray_messages};
 
 use crate::error::{Error, Result};

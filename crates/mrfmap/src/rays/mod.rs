@@ -7,9 +7,14 @@
 //! engines that take both.
 //! [`RayLimits`] applies the user's max range and bounding box, and [`for_each_crossing`] walks the
 //! voxels of the resulting segment. Every engine consumes rays through these three pieces.
+//! For a whole depth image, [`Projector`] finds the same voxels as walking every ray,
+//! by projecting boxes of voxels into the image instead (much less work when many rays cross
+//! each voxel); the log-odds engine uses it.
 
+mod frustum;
 mod traversal;
 
+pub use frustum::{CrossedVoxels, Projector};
 pub use traversal::{Crossing, crossings, for_each_crossing};
 
 use nalgebra::Matrix3;

@@ -8,8 +8,8 @@ mod file;
 mod grid;
 
 pub use grid::{
-    BRICK_EDGE, BRICK_VOXELS, Brick, BrickKey, BrickList, Grid, SlotMask, VoxelKey, check_resolution, mask_has,
-    mask_set, mask_slots,
+    BRICK_EDGE, BRICK_VOXELS, Brick, BrickKey, BrickList, Grid, SlotMask, VoxelKey, check_resolution, floor_i32,
+    mask_has, mask_set, mask_slots,
 };
 
 use std::collections::BTreeMap;

@@ -24,7 +24,7 @@
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
-use super::{FrameRays, RayLimits};
+use super::{CameraRays, FrameRays, RayLimits};
 use crate::frames::Frame;
 use crate::map::{BRICK_EDGE, BrickKey, SlotMask, VoxelKey, mask_set};
 
@@ -58,6 +58,7 @@ pub struct CrossedVoxels {
 #[derive(Clone, Debug, Default)]
 pub struct Projector {
     segments: Segments,
+    camera_rays: CameraRays,
 }
 
 impl Projector {
@@ -65,7 +66,7 @@ impl Projector {
     /// within `limits` (each segment from its start to its end, the end voxel included), and
     /// the voxels holding the segment ends that are measured surfaces.
     pub fn crossed_voxels(&mut self, frame: &Frame, limits: &RayLimits, resolution: f64) -> CrossedVoxels {
-        let ends = self.segments.fill(frame, limits, resolution);
+        let ends = self.segments.fill(FrameRays::with_camera_rays(frame, &mut self.camera_rays), limits, resolution);
         let Some(root) = self.segments.root_box(resolution) else { return CrossedVoxels::default() };
         let view = View::new(frame, &self.segments, resolution);
         // The top of the tree is cheap and serial; the voxel-level work of each undecided
@@ -160,8 +161,8 @@ impl Bounds {
 impl Segments {
     /// Fills the buffers for `frame`; returns the voxels of the segment ends that are
     /// measured surfaces.
-    fn fill(&mut self, frame: &Frame, limits: &RayLimits, resolution: f64) -> Vec<VoxelKey> {
-        let (width, height) = (frame.depth.width() as usize, frame.depth.height() as usize);
+    fn fill(&mut self, rays: FrameRays, limits: &RayLimits, resolution: f64) -> Vec<VoxelKey> {
+        let (width, height) = rays.size();
         (self.width, self.height) = (width, height);
         self.pixels.clear();
         self.pixels.resize(width * height, PixelSegment::NONE);
@@ -172,7 +173,6 @@ impl Segments {
         base.width = width;
         base.cells.clear();
         base.cells.resize(width * height, Bounds::NO_SEGMENT);
-        let rays = FrameRays::new(frame);
         type Extent = Option<([f64; 3], [f64; 3])>;
         let grow = |e: &mut Extent, p: [f64; 3]| {
             let (lo, hi) = e.get_or_insert((p, p));
@@ -305,6 +305,14 @@ impl Rect {
     }
 }
 
+/// Where a box appears in the image: the pixels that may see it, and its depth range.
+#[derive(Clone, Copy, Debug)]
+struct Footprint {
+    rect: Rect,
+    z_near: f32,
+    z_far: f32,
+}
+
 /// A box of voxels: keys `lo..hi` per axis (half-open).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 struct Box3 {
@@ -429,8 +437,8 @@ impl<'a> View<'a> {
     /// Splits `b` (inside one brick) down to voxels, setting the crossed ones in `mask`.
     fn split_voxels(&self, b: Box3, mask: &mut SlotMask) {
         let seen = match self.classify(&b) {
-            (Seen::Some, Some(rect)) if b.is_voxel() => {
-                if self.voxel_crossed(b.lo, rect) {
+            (Seen::Some, Some(footprint)) if b.is_voxel() => {
+                if self.voxel_crossed(b.lo, &footprint) {
                     Seen::All
                 } else {
                     Seen::None
@@ -455,7 +463,7 @@ impl<'a> View<'a> {
 
     /// Classifies a box by projecting its corners and reading the depth pyramid; also gives
     /// the rectangle of pixels whose rays can meet it.
-    fn classify(&self, b: &Box3) -> (Seen, Option<Rect>) {
+    fn classify(&self, b: &Box3) -> (Seen, Option<Footprint>) {
         let lo = std::array::from_fn::<f64, 3, _>(|k| {
             self.base[k] + (0..3).map(|a| b.lo[a] as f64 * self.step[a][k]).sum::<f64>()
         });
@@ -504,11 +512,11 @@ impl<'a> View<'a> {
         // Every pixel that sees the box starts before it and ends behind it.
         let through = d.start_max <= z_near32 && d.end_min >= z_far32;
         let seen = if inside_image && through && far2 <= self.dense_range2 { Seen::All } else { Seen::Some };
-        (seen, Some(rect))
+        (seen, Some(Footprint { rect, z_near: z_near32, z_far: z_far32 }))
     }
 
     /// The exact test for one voxel: does the segment of some pixel in `rect` pass through it?
-    fn voxel_crossed(&self, key: [i32; 3], rect: Rect) -> bool {
+    fn voxel_crossed(&self, key: [i32; 3], footprint: &Footprint) -> bool {
         let r = self.resolution;
         let lo: [f32; 3] = std::array::from_fn(|a| (key[a] as f64 * r - self.origin[a]) as f32);
         let hi: [f32; 3] = std::array::from_fn(|a| ((key[a] + 1) as f64 * r - self.origin[a]) as f32);
@@ -524,9 +532,9 @@ impl<'a> View<'a> {
         };
         // Most undecided voxels hold a surface, and the ray through the middle of their image
         // ends inside them: try it first.
-        let c: [f64; 3] = std::array::from_fn(|k| {
-            self.base[k] + (0..3).map(|a| (key[a] as f64 + 0.5) * self.step[a][k]).sum::<f64>()
-        });
+        let rect = &footprint.rect;
+        let c: [f64; 3] =
+            std::array::from_fn(|k| self.base[k] + (0..3).map(|a| (key[a] as f64 + 0.5) * self.step[a][k]).sum::<f64>());
         if c[2] > 0.0 {
             let (u, v) = ((self.fx * c[0] / c[2] + self.cx).round(), (self.fy * c[1] / c[2] + self.cy).round());
             let (u, v) = (u.max(rect.u0 as f64) as usize, v.max(rect.v0 as f64) as usize);
@@ -534,7 +542,21 @@ impl<'a> View<'a> {
                 return true;
             }
         }
-        (rect.v0..=rect.v1).any(|v| (rect.u0..=rect.u1).any(|u| crosses(u, v)))
+        // Then every pixel, skipping 4 x 4 blocks whose segments all miss the voxel's depths.
+        const K: usize = 2;
+        let blocks = &self.seg.levels[K.min(self.seg.levels.len() - 1)];
+        let k = K.min(self.seg.levels.len() - 1);
+        (rect.v0 >> k..=rect.v1 >> k).any(|bv| {
+            (rect.u0 >> k..=rect.u1 >> k).any(|bu| {
+                let d = blocks.cells[bv * blocks.width + bu];
+                if d.end_max <= footprint.z_near || d.start_min >= footprint.z_far {
+                    return false;
+                }
+                let (v0, v1) = ((bv << k).max(rect.v0), ((bv + 1) << k).min(rect.v1 + 1));
+                let (u0, u1) = ((bu << k).max(rect.u0), ((bu + 1) << k).min(rect.u1 + 1));
+                (v0..v1).any(|v| (u0..u1).any(|u| crosses(u, v)))
+            })
+        })
     }
 }
 

@@ -19,7 +19,7 @@
 
 use std::ops::ControlFlow;
 
-use crate::map::VoxelKey;
+use crate::map::{VoxelKey, floor_i32};
 
 /// One voxel crossed by a ray: `s_out - s_in > 0` is the length inside it.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -74,7 +74,7 @@ pub fn for_each_crossing(
     let mut t_max = [f64::INFINITY; 3]; // range of the next boundary per axis
     let mut t_delta = [0.0f64; 3]; // range between boundaries per axis
     for a in 0..3 {
-        key[a] = ((origin[a] + s_start * dir[a]) / resolution).floor() as i32;
+        key[a] = floor_i32((origin[a] + s_start * dir[a]) / resolution);
         if dir[a] != 0.0 {
             step[a] = if dir[a] > 0.0 { 1 } else { -1 };
             let face = key[a] + (dir[a] > 0.0) as i32;

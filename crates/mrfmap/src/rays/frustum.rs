@@ -26,14 +26,15 @@ use rayon::prelude::*;
 
 use super::{CameraRays, FrameRays, RayLimits};
 use crate::frames::Frame;
-use crate::map::{BRICK_EDGE, BrickKey, SlotMask, VoxelKey, mask_set};
+use crate::map::{BRICK_EDGE, BrickKey, SlotMask, VoxelKey, floor_i32, mask_set};
 
 /// The voxels one depth image's rays cross, and the voxels holding the measured surfaces.
 #[derive(Clone, Debug, Default)]
 pub struct CrossedVoxels {
     /// Crossed voxels per brick; each brick appears once.
     pub crossed: Vec<(BrickKey, SlotMask)>,
-    /// The voxel of each segment that ends at its measured surface (duplicates kept).
+    /// The voxels where segments end at their measured surface (each at least once; a voxel
+    /// may repeat).
     pub ends: Vec<VoxelKey>,
 }
 
@@ -67,8 +68,9 @@ impl Projector {
     /// the voxels holding the segment ends that are measured surfaces.
     pub fn crossed_voxels(&mut self, frame: &Frame, limits: &RayLimits, resolution: f64) -> CrossedVoxels {
         let ends = self.segments.fill(FrameRays::with_camera_rays(frame, &mut self.camera_rays), limits, resolution);
-        let Some(root) = self.segments.root_box(resolution) else { return CrossedVoxels::default() };
+        let Some(deepest) = self.segments.deepest() else { return CrossedVoxels::default() };
         let view = View::new(frame, &self.segments, resolution);
+        let root = view.root_box(deepest as f64, limits);
         // The top of the tree is cheap and serial; the voxel-level work of each undecided
         // brick is independent, so bricks go to the thread pool.
         let mut crossed = Vec::new();
@@ -80,6 +82,20 @@ impl Projector {
             (mask != [0; 8]).then_some((brick, mask))
         }));
         CrossedVoxels { crossed, ends }
+    }
+}
+
+/// `1 / d` per component, in f32, with one division instead of three (divisions were a fifth
+/// of the per-pixel setup). Components that are zero (or a product too small to invert
+/// accurately) take the plain route.
+#[inline]
+fn reciprocals(d: [f64; 3]) -> [f32; 3] {
+    let p = d[0] * d[1] * d[2];
+    if p.abs() > 1e-100 {
+        let q = 1.0 / p;
+        [(d[1] * d[2] * q) as f32, (d[0] * d[2] * q) as f32, (d[0] * d[1] * q) as f32]
+    } else {
+        d.map(|x| 1.0 / x as f32)
     }
 }
 
@@ -102,8 +118,6 @@ struct Segments {
     pixels: Vec<PixelSegment>,
     /// Depth bounds per pyramid level (level 0 = pixels).
     levels: Vec<Level>,
-    /// Bounding box (world) of the segments' start and end points.
-    extent: Option<([f64; 3], [f64; 3])>,
 }
 
 /// One pixel's segment: reciprocal world direction (for slab tests) and range interval
@@ -164,70 +178,52 @@ impl Segments {
     fn fill(&mut self, rays: FrameRays, limits: &RayLimits, resolution: f64) -> Vec<VoxelKey> {
         let (width, height) = rays.size();
         (self.width, self.height) = (width, height);
-        self.pixels.clear();
+        // Every pixel is written below, so only a change of size needs new buffers.
         self.pixels.resize(width * height, PixelSegment::NONE);
         if self.levels.is_empty() {
             self.levels.push(Level::default());
         }
         let base = &mut self.levels[0];
         base.width = width;
-        base.cells.clear();
         base.cells.resize(width * height, Bounds::NO_SEGMENT);
-        type Extent = Option<([f64; 3], [f64; 3])>;
-        let grow = |e: &mut Extent, p: [f64; 3]| {
-            let (lo, hi) = e.get_or_insert((p, p));
-            for k in 0..3 {
-                lo[k] = lo[k].min(p[k]);
-                hi[k] = hi[k].max(p[k]);
-            }
-        };
-        let rows: Vec<(Vec<VoxelKey>, Extent)> = self
+        let inv_r = 1.0 / resolution;
+        let rows: Vec<Vec<VoxelKey>> = self
             .pixels
             .par_chunks_mut(width)
             .zip(base.cells.par_chunks_mut(width))
             .enumerate()
             .map(|(v, (pixels, depths))| {
-                let (mut ends, mut extent) = (Vec::new(), None);
+                pixels.fill(PixelSegment::NONE);
+                depths.fill(Bounds::NO_SEGMENT);
+                let mut ends: Vec<VoxelKey> = Vec::new();
                 for ray in rays.row(v as u32) {
                     let Some(seg) = limits.segment(&ray, 0.0) else { continue };
                     let u = ray.u as usize;
-                    pixels[u] = PixelSegment {
-                        inv_dir: ray.dir.map(|d| 1.0 / d as f32),
-                        start: seg.start as f32,
-                        end: seg.end as f32,
-                    };
+                    pixels[u] =
+                        PixelSegment { inv_dir: reciprocals(ray.dir), start: seg.start as f32, end: seg.end as f32 };
                     let (z0, z1) = ((seg.start * ray.cz) as f32, (seg.end * ray.cz) as f32);
                     depths[u] = Bounds { end_min: z1, end_max: z1, start_min: z0, start_max: z0 };
-                    let point = |s: f64| [0, 1, 2].map(|a| ray.origin[a] + s * ray.dir[a]);
-                    let end = point(seg.end);
-                    grow(&mut extent, point(seg.start));
-                    grow(&mut extent, end);
                     if seg.hits_surface {
-                        ends.push(VoxelKey::from_point(end, resolution));
+                        let end =
+                            VoxelKey([0, 1, 2].map(|a| floor_i32((ray.origin[a] + seg.end * ray.dir[a]) * inv_r)));
+                        // Neighbouring pixels mostly end in the same voxel: keep one.
+                        if ends.last() != Some(&end) {
+                            ends.push(end);
+                        }
                     }
                 }
-                (ends, extent)
+                ends
             })
             .collect();
-        self.extent = None;
-        let mut ends = Vec::with_capacity(rows.iter().map(|r| r.0.len()).sum());
-        for (row_ends, extent) in rows {
-            ends.extend(row_ends);
-            if let Some((lo, hi)) = extent {
-                grow(&mut self.extent, lo);
-                grow(&mut self.extent, hi);
-            }
-        }
+        let ends = rows.concat();
         self.build_pyramid();
         ends
     }
 
-    /// The brick-aligned box of voxel keys holding every segment.
-    fn root_box(&self, resolution: f64) -> Option<Box3> {
-        let (lo, hi) = self.extent?;
-        let lo = VoxelKey::from_point(lo, resolution).brick().0.map(|b| b * BRICK_EDGE);
-        let hi = VoxelKey::from_point(hi, resolution).brick().0.map(|b| (b + 1) * BRICK_EDGE);
-        Some(Box3 { lo, hi })
+    /// Largest end depth over all pixels (`None` without segments).
+    fn deepest(&self) -> Option<f32> {
+        let top = self.levels.last()?.cells.first()?.end_max;
+        (top > 0.0).then_some(top)
     }
 
     /// Bounds of the pixels in `rect` (of a superset of them: the pyramid level is chosen
@@ -260,18 +256,18 @@ impl Segments {
             let (prev, next) = (&lower[k], &mut upper[0]);
             let (w, nw, nh) = (prev.width, prev.width.div_ceil(2), h.div_ceil(2));
             next.width = nw;
-            next.cells.clear();
-            for y in 0..nh {
-                for x in 0..nw {
+            next.cells.resize(nw * nh, Bounds::NO_SEGMENT);
+            next.cells.par_chunks_mut(nw).enumerate().for_each(|(y, row)| {
+                for (x, cell) in row.iter_mut().enumerate() {
                     let mut b = prev.cells[2 * y * w + 2 * x];
                     for (dx, dy) in [(1, 0), (0, 1), (1, 1)] {
                         if 2 * x + dx < w && 2 * y + dy < h {
                             b = b.union(prev.cells[(2 * y + dy) * w + 2 * x + dx]);
                         }
                     }
-                    next.cells.push(b);
+                    *cell = b;
                 }
-            }
+            });
             h = nh;
             k += 1;
         }
@@ -371,7 +367,8 @@ struct View<'a> {
     /// `base + k[0] step[0] + k[1] step[1] + k[2] step[2]`.
     base: [f64; 3],
     step: [[f64; 3]; 3],
-    /// World position of the camera, and the grid resolution (for the exact test).
+    /// Camera to world rotation, world position of the camera, and the grid resolution.
+    r_wc: Matrix3<f64>,
     origin: [f64; 3],
     resolution: f64,
     fx: f64,
@@ -401,6 +398,7 @@ impl<'a> View<'a> {
         let dense_range = c.fx.abs().min(c.fy.abs()) * 0.5 * resolution / 0.75;
         View {
             seg,
+            r_wc,
             base: [base.x, base.y, base.z],
             step,
             origin,
@@ -413,6 +411,30 @@ impl<'a> View<'a> {
             v_last: (seg.height - 1) as f64,
             dense_range2: dense_range * dense_range,
         }
+    }
+
+    /// A brick-aligned box holding every segment: the box around the camera and the image
+    /// corners at the deepest segment end (the view frustum), cut to the bounds.
+    fn root_box(&self, deepest: f64, limits: &RayLimits) -> Box3 {
+        let (mut lo, mut hi) = (self.origin, self.origin);
+        for (u, v) in [(0.0, 0.0), (self.u_last, 0.0), (0.0, self.v_last), (self.u_last, self.v_last)] {
+            let cam = Vector3::new((u - self.cx) / self.fx, (v - self.cy) / self.fy, 1.0) * deepest;
+            let p = self.r_wc * cam;
+            for a in 0..3 {
+                lo[a] = lo[a].min(p[a] + self.origin[a]);
+                hi[a] = hi[a].max(p[a] + self.origin[a]);
+            }
+        }
+        if let Some(b) = &limits.bounds {
+            for a in 0..3 {
+                lo[a] = lo[a].max(b.min[a]);
+                hi[a] = hi[a].min(b.max[a]).max(lo[a]);
+            }
+        }
+        let r = self.resolution;
+        let lo = VoxelKey::from_point(lo, r).brick().0.map(|b| b * BRICK_EDGE);
+        let hi = VoxelKey::from_point(hi, r).brick().0.map(|b| (b + 1) * BRICK_EDGE);
+        Box3 { lo, hi }
     }
 
     /// Splits `b` down to bricks: bricks seen whole go to `crossed`, undecided ones to
@@ -533,8 +555,9 @@ impl<'a> View<'a> {
         // Most undecided voxels hold a surface, and the ray through the middle of their image
         // ends inside them: try it first.
         let rect = &footprint.rect;
-        let c: [f64; 3] =
-            std::array::from_fn(|k| self.base[k] + (0..3).map(|a| (key[a] as f64 + 0.5) * self.step[a][k]).sum::<f64>());
+        let c: [f64; 3] = std::array::from_fn(|k| {
+            self.base[k] + (0..3).map(|a| (key[a] as f64 + 0.5) * self.step[a][k]).sum::<f64>()
+        });
         if c[2] > 0.0 {
             let (u, v) = ((self.fx * c[0] / c[2] + self.cx).round(), (self.fy * c[1] / c[2] + self.cy).round());
             let (u, v) = (u.max(rect.u0 as f64) as usize, v.max(rect.v0 as f64) as usize);
@@ -598,9 +621,9 @@ mod tests {
         Frame { index: 0, timestamp: 0.0, depth, pose, camera, noise: None }
     }
 
-    fn walked(frame: &Frame, limits: &RayLimits, r: f64) -> (BTreeSet<VoxelKey>, Vec<VoxelKey>) {
+    fn walked(frame: &Frame, limits: &RayLimits, r: f64) -> (BTreeSet<VoxelKey>, BTreeSet<VoxelKey>) {
         let rays = FrameRays::new(frame);
-        let (mut set, mut ends) = (BTreeSet::new(), Vec::new());
+        let (mut set, mut ends) = (BTreeSet::new(), BTreeSet::new());
         for v in 0..rays.rows() {
             for ray in rays.row(v) {
                 let Some(seg) = limits.segment(&ray, 0.0) else { continue };
@@ -611,15 +634,14 @@ mod tests {
                     ControlFlow::Continue(())
                 });
                 if let (true, Some(k)) = (seg.hits_surface, last) {
-                    ends.push(k);
+                    ends.insert(k);
                 }
             }
         }
-        ends.sort();
         (set, ends)
     }
 
-    fn projected(frame: &Frame, limits: &RayLimits, r: f64) -> (BTreeSet<VoxelKey>, Vec<VoxelKey>) {
+    fn projected(frame: &Frame, limits: &RayLimits, r: f64) -> (BTreeSet<VoxelKey>, BTreeSet<VoxelKey>) {
         let c = Projector::default().crossed_voxels(frame, limits, r);
         let mut bricks = BTreeSet::new();
         let set = c
@@ -628,9 +650,7 @@ mod tests {
             .inspect(|(b, _)| assert!(bricks.insert(*b), "brick {b:?} twice"))
             .flat_map(|(b, m)| mask_slots(m).map(|s| b.voxel(s)).collect::<Vec<_>>())
             .collect();
-        let mut ends = c.ends;
-        ends.sort();
-        (set, ends)
+        (set, c.ends.into_iter().collect())
     }
 
     #[test]
@@ -656,8 +676,8 @@ mod tests {
             total += walk.len();
             differ += diff;
             assert!(diff <= 2 + walk.len() / 1000, "case {case}: {diff} of {} voxels differ", walk.len());
-            let end_diff = walk_ends.iter().zip(&proj_ends).filter(|(a, b)| a != b).count();
-            assert_eq!(walk_ends.len(), proj_ends.len(), "case {case}");
+            let end_diff = walk_ends.symmetric_difference(&proj_ends).count();
+            assert!(!walk_ends.is_empty() || case % 3 != 0, "case {case}: no surfaces");
             assert!(end_diff <= 2, "case {case}: {end_diff} end voxels differ");
         }
         eprintln!("{differ} of {total} voxels differ");

@@ -72,7 +72,8 @@ pub fn pose_parts(pose: &Pose) -> (Matrix3<f64>, [f64; 3]) {
 #[derive(Clone, Debug, Default)]
 pub struct CameraRays {
     camera: Option<Camera>,
-    rays: Vec<(Vector3<f64>, f64)>,
+    /// Unit ray, z = 1 norm, and its reciprocal (the ray's z component).
+    rays: Vec<(Vector3<f64>, f64, f64)>,
 }
 
 impl CameraRays {
@@ -81,7 +82,10 @@ impl CameraRays {
         if self.camera.as_ref() != Some(camera) {
             self.rays = (0..camera.height)
                 .flat_map(|v| (0..camera.width).map(move |u| (u, v)))
-                .map(|(u, v)| unit_camera_ray(camera, u, v))
+                .map(|(u, v)| {
+                    let (ray, norm) = unit_camera_ray(camera, u, v);
+                    (ray, norm, 1.0 / norm)
+                })
                 .collect();
             self.camera = Some(*camera);
         }
@@ -130,15 +134,18 @@ impl<'a> FrameRays<'a> {
             if !(z > 0.0 && z.is_finite()) {
                 return None;
             }
-            let (dir, norm) = match self.camera_rays {
+            let (dir, norm, cz) = match self.camera_rays {
                 Some(c) => {
-                    let (d, norm) = c.rays[row_start + u];
+                    let (d, norm, cz) = c.rays[row_start + u];
                     let d = self.rotation * d;
-                    ([d.x, d.y, d.z], norm)
+                    ([d.x, d.y, d.z], norm, cz)
                 }
-                None => pixel_direction(cam, &self.rotation, u as u32, v),
+                None => {
+                    let (d, norm) = pixel_direction(cam, &self.rotation, u as u32, v);
+                    (d, norm, 1.0 / norm)
+                }
             };
-            Some(PixelRay { u: u as u32, v, origin: self.origin, dir, range: z as f64 * norm, cz: 1.0 / norm, returned: true })
+            Some(PixelRay { u: u as u32, v, origin: self.origin, dir, range: z as f64 * norm, cz, returned: true })
         })
     }
 

@@ -75,7 +75,7 @@ impl BrickKey {
 #[inline]
 pub fn floor_i32(x: f64) -> i32 {
     let t = x as i32; // toward zero, saturating
-    if (t as f64) > x { t.saturating_sub(1) } else { t }
+    t.saturating_sub(((t as f64) > x) as i32) // branch-free: the sign of x is unpredictable
 }
 
 /// A 512-bit set over a brick's slots.

@@ -193,12 +193,19 @@ impl Segments {
             .zip(base.cells.par_chunks_mut(width))
             .enumerate()
             .map(|(v, (pixels, depths))| {
-                pixels.fill(PixelSegment::NONE);
-                depths.fill(Bounds::NO_SEGMENT);
                 let mut ends: Vec<VoxelKey> = Vec::new();
+                // Each pixel is written once (memory traffic is most of this loop's time):
+                // those before `next_u` are done, the gap up to a ray's pixel has no segment.
+                let mut next_u = 0;
                 for ray in rays.row(v as u32) {
-                    let Some(seg) = limits.segment(&ray, 0.0) else { continue };
                     let u = ray.u as usize;
+                    pixels[next_u..u].fill(PixelSegment::NONE);
+                    depths[next_u..u].fill(Bounds::NO_SEGMENT);
+                    next_u = u + 1;
+                    let Some(seg) = limits.segment(&ray, 0.0) else {
+                        (pixels[u], depths[u]) = (PixelSegment::NONE, Bounds::NO_SEGMENT);
+                        continue;
+                    };
                     pixels[u] =
                         PixelSegment { inv_dir: reciprocals(ray.dir), start: seg.start as f32, end: seg.end as f32 };
                     let (z0, z1) = ((seg.start * ray.cz) as f32, (seg.end * ray.cz) as f32);
@@ -212,6 +219,8 @@ impl Segments {
                         }
                     }
                 }
+                pixels[next_u..].fill(PixelSegment::NONE);
+                depths[next_u..].fill(Bounds::NO_SEGMENT);
                 ends
             })
             .collect();
@@ -301,6 +310,22 @@ impl Rect {
     }
 }
 
+/// A box corner in camera coordinates, with the values [`View::judge`] takes extremes of.
+#[derive(Clone, Copy, Debug)]
+struct Corner {
+    z: f64,
+    /// Squared distance from the camera.
+    far2: f64,
+    /// `u z` and `(u - u_last) z`, `v z` and `(v - v_last) z`: the side planes' functions.
+    left: f64,
+    right: f64,
+    top: f64,
+    bottom: f64,
+    /// Pixel coordinates (meaningless unless `z > 0`).
+    u: f64,
+    v: f64,
+}
+
 /// Where a box appears in the image: the pixels that may see it, and its depth range.
 #[derive(Clone, Copy, Debug)]
 struct Footprint {
@@ -349,10 +374,6 @@ impl Box3 {
             }
             Some(b)
         })
-    }
-
-    fn is_voxel(&self) -> bool {
-        (0..3).all(|a| self.hi[a] - self.lo[a] == 1)
     }
 
     fn within_one_brick(&self) -> bool {
@@ -456,56 +477,90 @@ impl<'a> View<'a> {
         }
     }
 
-    /// Splits `b` (inside one brick) down to voxels, setting the crossed ones in `mask`.
+    /// Splits the undecided box `b` (inside one brick) down to voxels, setting the crossed
+    /// ones in `mask`. Its eight halves are judged together: their corners are 27 points,
+    /// not 64.
     fn split_voxels(&self, b: Box3, mask: &mut SlotMask) {
-        let seen = match self.classify(&b) {
-            (Seen::Some, Some(footprint)) if b.is_voxel() => {
-                if self.voxel_crossed(b.lo, &footprint) {
-                    Seen::All
-                } else {
-                    Seen::None
+        let half = (b.hi[0] - b.lo[0]) / 2;
+        let origin = self.corner_at(b.lo);
+        let step = self.step.map(|s| s.map(|c| c * half as f64));
+        let lattice: [Corner; 27] = std::array::from_fn(|n| {
+            let (i, j, k) = ((n % 3) as f64, ((n / 3) % 3) as f64, (n / 9) as f64);
+            self.corner(std::array::from_fn(|c| origin[c] + i * step[0][c] + j * step[1][c] + k * step[2][c]))
+        });
+        for octant in 0..8 {
+            let (i, j, k) = (octant & 1, octant >> 1 & 1, octant >> 2);
+            let lo = [b.lo[0] + i as i32 * half, b.lo[1] + j as i32 * half, b.lo[2] + k as i32 * half];
+            let child = Box3 { lo, hi: lo.map(|x| x + half) };
+            let corners = (0..8).map(|c| &lattice[(i + (c & 1)) + 3 * (j + (c >> 1 & 1)) + 9 * (k + (c >> 2))]);
+            match self.judge(corners) {
+                (Seen::None, _) => {}
+                (Seen::Some, Some(footprint)) if half == 1 => {
+                    if self.voxel_crossed(lo, &footprint) {
+                        mask_set(mask, VoxelKey(lo).slot());
+                    }
                 }
-            }
-            (s, _) => s,
-        };
-        match seen {
-            Seen::None => {}
-            Seen::All => {
-                for z in b.lo[2]..b.hi[2] {
-                    for y in b.lo[1]..b.hi[1] {
-                        for x in b.lo[0]..b.hi[0] {
-                            mask_set(mask, VoxelKey([x, y, z]).slot());
+                (Seen::Some, _) => self.split_voxels(child, mask),
+                (Seen::All, _) => {
+                    for z in child.lo[2]..child.hi[2] {
+                        for y in child.lo[1]..child.hi[1] {
+                            for x in child.lo[0]..child.hi[0] {
+                                mask_set(mask, VoxelKey([x, y, z]).slot());
+                            }
                         }
                     }
                 }
             }
-            Seen::Some => b.split().for_each(|c| self.split_voxels(c, mask)),
+        }
+    }
+
+    /// Camera-frame position of grid corner `key`.
+    fn corner_at(&self, key: [i32; 3]) -> [f64; 3] {
+        std::array::from_fn(|k| self.base[k] + (0..3).map(|a| key[a] as f64 * self.step[a][k]).sum::<f64>())
+    }
+
+    /// What [`View::judge`] needs of a camera-frame point.
+    #[inline]
+    fn corner(&self, [x, y, z]: [f64; 3]) -> Corner {
+        // In camera coordinates a pixel column is u = (fx x + cx z) / z; the frustum's planes
+        // through the camera are fx x + cx z = 0 (u = 0) and fx x + (cx - u_last) z = 0.
+        let (left, top) = (self.fx * x + self.cx * z, self.fy * y + self.cy * z);
+        let inv_z = 1.0 / z; // only used when z > 0
+        Corner {
+            z,
+            far2: x * x + y * y + z * z,
+            left,
+            right: left - self.u_last * z,
+            top,
+            bottom: top - self.v_last * z,
+            u: left * inv_z,
+            v: top * inv_z,
         }
     }
 
     /// Classifies a box by projecting its corners and reading the depth pyramid; also gives
     /// the rectangle of pixels whose rays can meet it.
     fn classify(&self, b: &Box3) -> (Seen, Option<Footprint>) {
-        let lo = std::array::from_fn::<f64, 3, _>(|k| {
-            self.base[k] + (0..3).map(|a| b.lo[a] as f64 * self.step[a][k]).sum::<f64>()
+        let corners: [Corner; 8] = std::array::from_fn(|i| {
+            self.corner(self.corner_at(std::array::from_fn(|a| if i >> a & 1 == 1 { b.hi[a] } else { b.lo[a] })))
         });
-        let edge: [[f64; 3]; 3] = std::array::from_fn(|a| self.step[a].map(|s| s * (b.hi[a] - b.lo[a]) as f64));
-        let corners: [[f64; 3]; 8] = std::array::from_fn(|i| {
-            std::array::from_fn(|k| lo[k] + (0..3).map(|a| if i >> a & 1 == 1 { edge[a][k] } else { 0.0 }).sum::<f64>())
-        });
-        // In camera coordinates a pixel column is u = (fx x + cx z) / z; the frustum's planes
-        // through the camera are fx x + cx z = 0 (u = 0) and fx x + (cx - u_last) z = 0.
+        self.judge(corners.iter())
+    }
+
+    /// [`View::classify`] for the box with these eight corners.
+    #[inline]
+    fn judge<'c>(&self, corners: impl Iterator<Item = &'c Corner> + Clone) -> (Seen, Option<Footprint>) {
         let (mut z_near, mut z_far, mut far2) = (f64::INFINITY, f64::NEG_INFINITY, 0.0f64);
         let (mut left, mut right, mut top, mut bottom) =
             (f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY);
-        for [x, y, z] in corners {
-            z_near = z_near.min(z);
-            z_far = z_far.max(z);
-            far2 = far2.max(x * x + y * y + z * z);
-            left = left.max(self.fx * x + self.cx * z);
-            right = right.min(self.fx * x + (self.cx - self.u_last) * z);
-            top = top.max(self.fy * y + self.cy * z);
-            bottom = bottom.min(self.fy * y + (self.cy - self.v_last) * z);
+        for c in corners.clone() {
+            z_near = z_near.min(c.z);
+            z_far = z_far.max(c.z);
+            far2 = far2.max(c.far2);
+            left = left.max(c.left);
+            right = right.min(c.right);
+            top = top.max(c.top);
+            bottom = bottom.min(c.bottom);
         }
         // Behind the camera, or wholly outside one of the frustum's side planes.
         if z_far <= 0.0 || left < 0.0 || right > 0.0 || top < 0.0 || bottom > 0.0 {
@@ -516,10 +571,8 @@ impl<'a> View<'a> {
         let mut inside_image = false;
         if z_near > 0.0 {
             (u_min, u_max, v_min, v_max) = (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
-            for [x, y, z] in corners {
-                let inv_z = 1.0 / z;
-                let (u, v) = (self.fx * x * inv_z + self.cx, self.fy * y * inv_z + self.cy);
-                (u_min, u_max, v_min, v_max) = (u_min.min(u), u_max.max(u), v_min.min(v), v_max.max(v));
+            for c in corners {
+                (u_min, u_max, v_min, v_max) = (u_min.min(c.u), u_max.max(c.u), v_min.min(c.v), v_max.max(c.v));
             }
             inside_image = u_min >= 0.0 && u_max <= self.u_last && v_min >= 0.0 && v_max <= self.v_last;
         }

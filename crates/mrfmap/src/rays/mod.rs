@@ -18,6 +18,7 @@ pub use frustum::{CrossedVoxels, Projector};
 pub use traversal::{Crossing, crossings, for_each_crossing};
 
 use nalgebra::{Matrix3, Vector3};
+use rayon::prelude::*;
 
 use crate::frames::{Camera, Frame, NoiseModel, Pose, RangeScan};
 
@@ -80,8 +81,10 @@ impl CameraRays {
     /// The rays of `camera`, recomputed only when it differs from the last one.
     pub fn update(&mut self, camera: &Camera) -> &Self {
         if self.camera.as_ref() != Some(camera) {
-            self.rays = (0..camera.height)
-                .flat_map(|v| (0..camera.width).map(move |u| (u, v)))
+            let width = camera.width;
+            self.rays = (0..camera.pixel_count() as u32)
+                .into_par_iter()
+                .map(|i| (i % width, i / width))
                 .map(|(u, v)| {
                     let (ray, norm) = unit_camera_ray(camera, u, v);
                     (ray, norm, 1.0 / norm)

@@ -131,25 +131,36 @@ impl<'a> FrameRays<'a> {
 
     /// Rays of the valid pixels of row `v`, left to right.
     pub fn row(&self, v: u32) -> impl Iterator<Item = PixelRay> + '_ {
-        let cam = &self.frame.camera;
-        let row_start = v as usize * cam.width as usize;
-        self.frame.depth.row(v).iter().enumerate().filter_map(move |(u, &z)| {
-            if !(z > 0.0 && z.is_finite()) {
-                return None;
+        self.frame.depth.row(v).iter().enumerate().filter_map(move |(u, &z)| self.ray_of(u as u32, v, z))
+    }
+
+    /// The ray of pixel `(u, v)`, `None` if its depth is not valid (zero, negative or not
+    /// finite) or the pixel is outside the image.
+    pub fn ray(&self, u: u32, v: u32) -> Option<PixelRay> {
+        let depth = &self.frame.depth;
+        if u >= depth.width() || v >= depth.height() {
+            return None;
+        }
+        self.ray_of(u, v, depth.get(u, v)?)
+    }
+
+    #[inline]
+    fn ray_of(&self, u: u32, v: u32, z: f32) -> Option<PixelRay> {
+        if !(z > 0.0 && z.is_finite()) {
+            return None;
+        }
+        let (dir, norm, cz) = match self.camera_rays {
+            Some(c) => {
+                let (d, norm, cz) = c.rays[v as usize * self.frame.camera.width as usize + u as usize];
+                let d = self.rotation * d;
+                ([d.x, d.y, d.z], norm, cz)
             }
-            let (dir, norm, cz) = match self.camera_rays {
-                Some(c) => {
-                    let (d, norm, cz) = c.rays[row_start + u];
-                    let d = self.rotation * d;
-                    ([d.x, d.y, d.z], norm, cz)
-                }
-                None => {
-                    let (d, norm) = pixel_direction(cam, &self.rotation, u as u32, v);
-                    (d, norm, 1.0 / norm)
-                }
-            };
-            Some(PixelRay { u: u as u32, v, origin: self.origin, dir, range: z as f64 * norm, cz, returned: true })
-        })
+            None => {
+                let (d, norm) = pixel_direction(&self.frame.camera, &self.rotation, u, v);
+                (d, norm, 1.0 / norm)
+            }
+        };
+        Some(PixelRay { u, v, origin: self.origin, dir, range: z as f64 * norm, cz, returned: true })
     }
 
     /// The measured surface point of a ray in world coordinates.

@@ -144,7 +144,7 @@ impl<'a> FrameRays<'a> {
         self.ray_of(u, v, depth.get(u, v)?)
     }
 
-    #[inline]
+    #[inline(always)] // a call per pixel, returning 80 bytes, cost a tenth of the projection setup
     fn ray_of(&self, u: u32, v: u32, z: f32) -> Option<PixelRay> {
         if !(z > 0.0 && z.is_finite()) {
             return None;
@@ -354,6 +354,7 @@ impl RayLimits {
 
     /// Range of the ray's measured surface, `None` when it lies beyond the max range (the
     /// reading then only says "free up to max range").
+    #[inline]
     pub fn surface_range(&self, ray: &PixelRay) -> Option<f64> {
         (ray.returned && self.max_range.is_none_or(|m| ray.range <= m)).then_some(ray.range)
     }
@@ -378,6 +379,7 @@ impl RayLimits {
     /// let seg = limits.segment(&ray, 0.0).unwrap();
     /// assert_eq!((seg.start, seg.end, seg.hits_surface), (0.0, 3.0, false));
     /// ```
+    #[inline]
     pub fn segment(&self, ray: &PixelRay, extra: f64) -> Option<Segment> {
         let mut seg = match (self.surface_range(ray), self.max_range) {
             (Some(z), m) => {

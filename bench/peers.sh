@@ -35,10 +35,14 @@ for ds in "${datasets[@]}"; do
     read -r _ o_ms o_occ _ < "$rows.o"
     m_mem=$( { /usr/bin/time -f '%M' target/release/mrfmap -q bench "$ds" --resolutions "$r" --repeat "$repeat" > "$rows.m"; } 2>&1 | tail -1)
     read -r _ m_ms m_occ _ _ < <(grep -v '^#' "$rows.m" | tail -1)
+    # The same engine walking every ray instead of projecting (the previous method).
+    target/release/mrfmap -q bench "$ds" --resolutions "$r" --repeat "$repeat" --marking walk > "$rows.w"
+    read -r _ w_ms _ _ _ < <(grep -v '^#' "$rows.w" | tail -1)
     ratio=$(python3 -c "print(f'{$o_ms / $m_ms:.1f}')")
     diff=$(python3 -c "print(f'{100.0 * ($m_occ - $o_occ) / $o_occ:+.2f}')")
-    printf '| %s (%s frames) | %s | %s | %s | %sx | %s | %s | %s%% | %s | %s |\n' \
-      "$name" "$frames" "$r" "$o_ms" "$m_ms" "$ratio" "$o_occ" "$m_occ" "$diff" \
+    w_ratio=$(python3 -c "print(f'{$o_ms / $w_ms:.1f}')")
+    printf '| %s (%s frames) | %s | %s | %s | %sx | %s (%sx) | %s | %s | %s%% | %s | %s |\n' \
+      "$name" "$frames" "$r" "$o_ms" "$m_ms" "$ratio" "$w_ms" "$w_ratio" "$o_occ" "$m_occ" "$diff" \
       "$((o_mem / 1024))" "$((m_mem / 1024))" | tee -a "$rows"
   done
 done
@@ -49,10 +53,10 @@ done
   echo
   echo "Command: \`bench/peers.sh${*:+ $*}\` (best of $repeat per cell; time per frame of insertion only, frames preloaded)"
   echo
-  echo "| dataset | res (m) | OctoMap ms/frame | mrfmap ms/frame | speed-up | OctoMap occupied | mrfmap occupied | diff | OctoMap peak MiB | mrfmap peak MiB |"
-  echo "|---|---|---|---|---|---|---|---|---|---|"
+  echo "| dataset | res (m) | OctoMap ms/frame | mrfmap ms/frame | speed-up | mrfmap walking every ray, ms/frame | OctoMap occupied | mrfmap occupied | diff | OctoMap peak MiB | mrfmap peak MiB |"
+  echo "|---|---|---|---|---|---|---|---|---|---|---|"
   cat "$rows"
 } > "$rows.table"
 cat "$rows.table"
 if [[ $append == 1 ]]; then cat "$rows.table" >> BENCHMARKS.md; fi
-rm -f "$rows.o" "$rows.m" "$rows.table"
+rm -f "$rows.o" "$rows.m" "$rows.w" "$rows.table"

@@ -5,7 +5,9 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Result;
-use mrfmap::inference::{CrmParams, EngineConfig, EngineKind, MrfEngine, MrfParams, new_engine};
+use mrfmap::inference::{CrmParams, EngineConfig, EngineKind, LogOddsParams, MrfEngine, MrfParams, new_engine};
+
+use super::build::marking;
 use mrfmap::source::Dataset;
 
 #[derive(clap::Args)]
@@ -28,6 +30,9 @@ pub struct Args {
     /// CRM only: particles per voxel.
     #[arg(long, default_value_t = 101)]
     particles: usize,
+    /// Log-odds only: find crossed voxels by projection or by walking every ray.
+    #[arg(long, default_value = "project", value_parser = ["project", "walk"])]
+    marking: String,
 }
 
 /// Time to add the last frame to an inferred MRF of the others and run 3 iterations.
@@ -54,9 +59,10 @@ pub fn run(a: Args) -> Result<()> {
     let dataset = Dataset::open(&a.dataset)?;
     let frames = (0..dataset.len()).map(|i| dataset.frame(i)).collect::<mrfmap::Result<Vec<_>>>()?;
     println!(
-        "# {} frames of {}, engine {kind}, {} threads, best of {}",
+        "# {} frames of {}, engine {kind}{}, {} threads, best of {}",
         frames.len(),
         a.dataset.display(),
+        if kind == EngineKind::LogOdds { format!(" (marking: {})", a.marking) } else { String::new() },
         rayon::current_num_threads(),
         a.repeat
     );
@@ -71,8 +77,11 @@ pub fn run(a: Args) -> Result<()> {
         let mut best = f64::INFINITY;
         let mut last = None;
         for _ in 0..a.repeat.max(1) {
-            let config =
-                EngineConfig { crm: CrmParams { particles: a.particles }, ..EngineConfig::new(kind, resolution) };
+            let config = EngineConfig {
+                crm: CrmParams { particles: a.particles },
+                logodds: LogOddsParams { marking: marking(&a.marking), ..Default::default() },
+                ..EngineConfig::new(kind, resolution)
+            };
             let mut engine = new_engine(&config)?;
             let t = Instant::now();
             for f in &frames {

@@ -6,7 +6,9 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use mrfmap::frames::Frame;
-use mrfmap::inference::{Allocation, CrmParams, EngineConfig, EngineKind, KeyframeSelection, MrfParams, new_engine};
+use mrfmap::inference::{
+    Allocation, CrmParams, EngineConfig, EngineKind, KeyframeSelection, LogOddsParams, Marking, MrfParams, new_engine,
+};
 use mrfmap::map::Map;
 use mrfmap::rays::{Aabb, RayLimits};
 use mrfmap::source::Dataset;
@@ -39,6 +41,15 @@ pub struct MapOptions {
     /// CRM: particles per voxel pdf (memory per voxel is 4 * (particles + 1) bytes).
     #[arg(long, default_value_t = 101, value_parser = clap::value_parser!(u16).range(2..))]
     pub particles: u16,
+    /// Log-odds: find the voxels a depth image's rays cross by projecting boxes of voxels
+    /// into the image (project, faster) or by walking every ray (walk); same map.
+    #[arg(long, default_value = "project", value_parser = ["project", "walk"])]
+    pub marking: String,
+}
+
+/// The log-odds marking named on the command line (`project` or `walk`).
+pub fn marking(name: &str) -> Marking {
+    if name == "walk" { Marking::Walk } else { Marking::Project }
 }
 
 impl MapOptions {
@@ -59,6 +70,7 @@ impl MapOptions {
             kind,
             resolution,
             limits: RayLimits { max_range: self.max_range, bounds },
+            logodds: LogOddsParams { marking: marking(&self.marking), ..Default::default() },
             mrf: MrfParams {
                 prior: self.prior,
                 iterations: self.iterations,

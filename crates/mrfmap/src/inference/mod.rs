@@ -117,6 +117,8 @@ pub struct EngineConfig {
     pub resolution: f64,
     /// Max range and bounding box applied to every ray.
     pub limits: RayLimits,
+    /// Parameters of the log-odds engine (ignored by the others).
+    pub logodds: LogOddsParams,
     /// Parameters of the MRF engine (ignored by the others).
     pub mrf: MrfParams,
     /// Parameters of the CRM engine (ignored by the others).
@@ -130,6 +132,7 @@ impl EngineConfig {
             kind,
             resolution,
             limits: RayLimits::default(),
+            logodds: LogOddsParams::default(),
             mrf: MrfParams::default(),
             crm: CrmParams::default(),
         }
@@ -147,9 +150,7 @@ impl EngineConfig {
 pub fn new_engine(config: &EngineConfig) -> Result<Box<dyn Engine>> {
     config.limits.validate()?;
     Ok(match config.kind {
-        EngineKind::LogOdds => {
-            Box::new(LogOddsEngine::new(config.resolution, config.limits, LogOddsParams::default())?)
-        }
+        EngineKind::LogOdds => Box::new(LogOddsEngine::new(config.resolution, config.limits, config.logodds)?),
         EngineKind::Mrf => Box::new(MrfEngine::new(config.resolution, config.limits, config.mrf)?),
         EngineKind::Crm => Box::new(CrmEngine::new(config.resolution, config.limits, config.crm)?),
     })

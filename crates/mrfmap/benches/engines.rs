@@ -9,7 +9,7 @@ use std::sync::Arc;
 
 use divan::{Bencher, black_box, counter::ItemsCount};
 use mrfmap::frames::Frame;
-use mrfmap::inference::{CrmEngine, CrmParams, Engine, LogOddsEngine, LogOddsParams, MrfEngine, MrfParams};
+use mrfmap::inference::{CrmEngine, CrmParams, Engine, LogOddsEngine, LogOddsParams, Marking, MrfEngine, MrfParams};
 use mrfmap::outputs::{AccuracyParams, Scorer};
 use mrfmap::random::Rng;
 use mrfmap::rays::for_each_crossing;
@@ -74,13 +74,20 @@ fn traversal(bencher: Bencher) {
     });
 }
 
-/// One 640x480 frame into a fresh log-odds map (OctoMap semantics), 0.02 m.
-#[divan::bench(sample_count = 10)]
-fn logodds_frame(bencher: Bencher) {
-    let f = frames(1).remove(0);
+/// One 640x480 frame into a log-odds map holding one earlier frame (OctoMap semantics),
+/// 0.02 m, finding the crossed voxels by walking every ray or by projection.
+#[divan::bench(args = ["walk", "project"], sample_count = 10)]
+fn logodds_frame(bencher: Bencher, marking: &str) {
+    let fs = frames(2);
+    let marking = if marking == "walk" { Marking::Walk } else { Marking::Project };
     bencher
-        .with_inputs(|| LogOddsEngine::new(0.02, Default::default(), LogOddsParams::default()).unwrap())
-        .bench_local_refs(|e| e.integrate(&f).unwrap());
+        .with_inputs(|| {
+            let params = LogOddsParams { marking, ..Default::default() };
+            let mut e = LogOddsEngine::new(0.02, Default::default(), params).unwrap();
+            e.integrate(&fs[0]).unwrap();
+            e
+        })
+        .bench_local_refs(|e| e.integrate(&fs[1]).unwrap());
 }
 
 /// One 640x480 frame into a CRM map holding one earlier frame, 0.02 m, by particle count.

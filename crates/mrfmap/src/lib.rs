@@ -8,7 +8,8 @@
 //!   planar cell worlds with a simulated range scanner;
 //! - [`frames`]: one reading — depth image or range scan, camera, pose, noise model (and its
 //!   calibration from image pairs);
-//! - [`rays`]: pixel and beam rays and exact voxel traversal;
+//! - [`rays`]: pixel and beam rays, exact voxel traversal, and the crossed voxels of a whole
+//!   depth image found by projection;
 //! - [`inference`]: the engines (log-odds, MRF, CRM) behind one [`inference::Engine`] trait;
 //! - [`map`]: the sparse bricked voxel grid and the finished [`map::Map`] with its file format;
 //! - [`outputs`]: exports (PLY, OctoMap), the accuracy metric, ground-truth metrics and

@@ -120,7 +120,9 @@ pub enum Marking {
     /// their length.
     Walk,
     /// Project boxes of voxels into the image ([`crossed_voxels`]): work grows with the
-    /// number of voxels in view; several times faster on 640x480 images.
+    /// number of voxels in view; several times faster on 640x480 images. Frames whose depths
+    /// lie mostly where voxels are smaller than a pixel are walked instead
+    /// ([`Projector::pays_off`]).
     ///
     /// [`crossed_voxels`]: crate::rays::Projector::crossed_voxels
     #[default]
@@ -262,7 +264,7 @@ impl Engine for LogOddsEngine {
 
     fn integrate(&mut self, frame: &Frame) -> Result<()> {
         match (self.params.model, self.params.marking) {
-            (SensorModel::HitMiss { .. }, Marking::Project) => {
+            (SensorModel::HitMiss { .. }, Marking::Project) if Projector::pays_off(frame, self.grid.resolution()) => {
                 let crossed = self.projector.crossed_voxels(frame, &self.limits, self.grid.resolution());
                 self.apply_marks(ScanMarks::of_crossed(crossed));
             }

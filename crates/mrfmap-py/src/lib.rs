@@ -169,7 +169,14 @@ impl Mapper {
         let inner = if kind == EngineKind::Mrf {
             Inner::Mrf(Box::new(MrfEngine::new(resolution, limits, mrf).map_err(py_err)?))
         } else {
-            let config = EngineConfig { kind, resolution, limits, logodds: Default::default(), mrf, crm: CrmParams { particles } };
+            let config = EngineConfig {
+                kind,
+                resolution,
+                limits,
+                logodds: Default::default(),
+                mrf,
+                crm: CrmParams { particles },
+            };
             Inner::Online(new_engine(&config).map_err(py_err)?)
         };
         Ok(Mapper { inner: Mutex::new(inner), camera, noise, frames: Mutex::new(0) })

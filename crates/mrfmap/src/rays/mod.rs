@@ -57,7 +57,7 @@ pub fn pixel_direction(camera: &Camera, rotation: &Matrix3<f64>, u: u32, v: u32)
 fn unit_camera_ray(camera: &Camera, u: u32, v: u32) -> (Vector3<f64>, f64) {
     let ray = camera.pixel_ray(u as f64, v as f64);
     let norm = ray.norm();
-    (ray / norm, norm)
+    (ray * (1.0 / norm), norm) // one division, not three: per-camera setup is per pixel
 }
 
 /// The rotation matrix and origin of a pose, in the form ray generation wants.

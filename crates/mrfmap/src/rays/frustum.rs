@@ -284,6 +284,7 @@ impl Segments {
             .enumerate()
             .map(|(v, (pixels, depths))| {
                 let mut ends: Vec<VoxelKey> = Vec::new();
+                let mut last_end = [f64::NAN; 3]; // no end yet: every comparison fails
                 // Each pixel is written once (memory traffic is most of this loop's time):
                 // those before `next_u` are done, the gap up to a ray's pixel has no segment.
                 let mut next_u = 0;
@@ -301,15 +302,14 @@ impl Segments {
                     let (z0, z1) = ((seg.start * ray.cz) as f32, (seg.end * ray.cz) as f32);
                     depths[u] = Bounds { end_min: z1, end_max: z1, start_min: z0, start_max: z0 };
                     if seg.hits_surface {
-                        let end =
-                            // Written out: `[0, 1, 2].map` was not inlined here (16% of the setup).
-                            VoxelKey([
-                                floor_i32((ray.origin[0] + seg.end * ray.dir[0]) * inv_r),
-                                floor_i32((ray.origin[1] + seg.end * ray.dir[1]) * inv_r),
-                                floor_i32((ray.origin[2] + seg.end * ray.dir[2]) * inv_r),
-                            ]);
-                        // Neighbouring pixels mostly end in the same voxel: keep one.
-                        if ends.last() != Some(&end) {
+                        // The end in voxel units; neighbouring pixels mostly end in the same
+                        // voxel as the last one (`floor(q) == last` exactly when `last <= q <
+                        // last + 1`), which is cheaper to check than three floors (a quarter of
+                        // this loop's time).
+                        let q = [0, 1, 2].map(|a| (ray.origin[a] + seg.end * ray.dir[a]) * inv_r);
+                        if !(0..3).all(|a| q[a] >= last_end[a] && q[a] < last_end[a] + 1.0) {
+                            let end = VoxelKey([floor_i32(q[0]), floor_i32(q[1]), floor_i32(q[2])]);
+                            last_end = end.0.map(|k| k as f64);
                             ends.push(end);
                         }
                     }

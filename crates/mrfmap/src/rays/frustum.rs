@@ -270,52 +270,62 @@ impl Segments {
         (self.width, self.height) = (width, height);
         // Every pixel is written below, so only a change of size needs new buffers.
         self.pixels.resize(width * height, PixelSegment::NONE);
-        if self.levels.is_empty() {
-            self.levels.push(Level::default());
-        }
-        let base = &mut self.levels[0];
+        self.levels.resize_with(self.levels.len().max(2), Level::default);
+        let (fine, coarse) = self.levels.split_at_mut(1);
+        let (base, blocks) = (&mut fine[0], &mut coarse[0]);
         base.width = width;
         base.cells.resize(width * height, Bounds::NO_SEGMENT);
+        blocks.width = width.div_ceil(2);
+        blocks.cells.resize(blocks.width * height.div_ceil(2), Bounds::NO_SEGMENT);
         let inv_r = 1.0 / resolution;
-        let rows: Vec<Vec<VoxelKey>> = self
-            .pixels
-            .par_chunks_mut(width)
-            .zip(base.cells.par_chunks_mut(width))
-            .enumerate()
-            .map(|(v, (pixels, depths))| {
-                let mut ends: Vec<VoxelKey> = Vec::new();
-                let mut last_end = [f64::NAN; 3]; // no end yet: every comparison fails
-                // Each pixel is written once (memory traffic is most of this loop's time):
-                // those before `next_u` are done, the gap up to a ray's pixel has no segment.
-                let mut next_u = 0;
-                for ray in rays.row(v as u32) {
-                    let u = ray.u as usize;
-                    pixels[next_u..u].fill(PixelSegment::NONE);
-                    depths[next_u..u].fill(Bounds::NO_SEGMENT);
-                    next_u = u + 1;
-                    let Some(seg) = limits.segment(&ray, 0.0) else {
-                        (pixels[u], depths[u]) = (PixelSegment::NONE, Bounds::NO_SEGMENT);
-                        continue;
-                    };
-                    pixels[u] =
-                        PixelSegment { inv_dir: reciprocals(ray.dir), start: seg.start as f32, end: seg.end as f32 };
-                    let (z0, z1) = ((seg.start * ray.cz) as f32, (seg.end * ray.cz) as f32);
-                    depths[u] = Bounds { end_min: z1, end_max: z1, start_min: z0, start_max: z0 };
-                    if seg.hits_surface {
-                        // The end in voxel units; neighbouring pixels mostly end in the same
-                        // voxel as the last one (`floor(q) == last` exactly when `last <= q <
-                        // last + 1`), which is cheaper to check than three floors (a quarter of
-                        // this loop's time).
-                        let q = [0, 1, 2].map(|a| (ray.origin[a] + seg.end * ray.dir[a]) * inv_r);
-                        if !(0..3).all(|a| q[a] >= last_end[a] && q[a] < last_end[a] + 1.0) {
-                            let end = VoxelKey([floor_i32(q[0]), floor_i32(q[1]), floor_i32(q[2])]);
-                            last_end = end.0.map(|k| k as f64);
-                            ends.push(end);
-                        }
+        let fill_row = |v: usize, pixels: &mut [PixelSegment], depths: &mut [Bounds], ends: &mut Vec<VoxelKey>| {
+            // Each pixel is written once: those before `next_u` are done, the gap up to a
+            // ray's pixel has no segment.
+            let mut next_u = 0;
+            let mut last_end = [f64::NAN; 3]; // no end yet: every comparison fails
+            for ray in rays.row(v as u32) {
+                let u = ray.u as usize;
+                pixels[next_u..u].fill(PixelSegment::NONE);
+                depths[next_u..u].fill(Bounds::NO_SEGMENT);
+                next_u = u + 1;
+                let Some(seg) = limits.segment(&ray, 0.0) else {
+                    (pixels[u], depths[u]) = (PixelSegment::NONE, Bounds::NO_SEGMENT);
+                    continue;
+                };
+                pixels[u] =
+                    PixelSegment { inv_dir: reciprocals(ray.dir), start: seg.start as f32, end: seg.end as f32 };
+                let (z0, z1) = ((seg.start * ray.cz) as f32, (seg.end * ray.cz) as f32);
+                depths[u] = Bounds { end_min: z1, end_max: z1, start_min: z0, start_max: z0 };
+                if seg.hits_surface {
+                    // The end in voxel units; neighbouring pixels mostly end in the same voxel
+                    // as the last one (`floor(q) == last` exactly when `last <= q < last + 1`),
+                    // which is cheaper to check than three floors (a quarter of this loop).
+                    let q = [0, 1, 2].map(|a| (ray.origin[a] + seg.end * ray.dir[a]) * inv_r);
+                    if !(0..3).all(|a| q[a] >= last_end[a] && q[a] < last_end[a] + 1.0) {
+                        let end = VoxelKey([floor_i32(q[0]), floor_i32(q[1]), floor_i32(q[2])]);
+                        last_end = end.0.map(|k| k as f64);
+                        ends.push(end);
                     }
                 }
-                pixels[next_u..].fill(PixelSegment::NONE);
-                depths[next_u..].fill(Bounds::NO_SEGMENT);
+            }
+            pixels[next_u..].fill(PixelSegment::NONE);
+            depths[next_u..].fill(Bounds::NO_SEGMENT);
+        };
+        // Pairs of rows, so each task also makes its row of 2 x 2 blocks while the pair is
+        // in cache (as a separate pass it cost as much as a tenth of the setup).
+        let rows: Vec<Vec<VoxelKey>> = self
+            .pixels
+            .par_chunks_mut(2 * width)
+            .zip(base.cells.par_chunks_mut(2 * width))
+            .zip(blocks.cells.par_chunks_mut(blocks.width))
+            .enumerate()
+            .map(|(pair, ((pixels, depths), block_row))| {
+                let mut ends = Vec::new();
+                for (dv, (p, d)) in pixels.chunks_mut(width).zip(depths.chunks_mut(width)).enumerate() {
+                    fill_row(2 * pair + dv, p, d, &mut ends);
+                }
+                let (upper, lower) = depths.split_at(width);
+                reduce_rows(upper, if lower.is_empty() { upper } else { lower }, block_row);
                 ends
             })
             .collect();
@@ -348,10 +358,10 @@ impl Segments {
         b
     }
 
-    /// Levels 1, 2, ... of the min/max pyramid over level 0, down to one cell (reusing the
-    /// previous frame's buffers).
+    /// Levels 2, 3, ... of the min/max pyramid, down to one block (reusing the previous
+    /// frame's buffers).
     fn build_pyramid(&mut self) {
-        let (mut k, mut h) = (0, self.height);
+        let (mut k, mut h) = (1, self.height.div_ceil(2));
         while self.levels[k].width > 1 || h > 1 {
             if self.levels.len() == k + 1 {
                 self.levels.push(Level::default());
@@ -361,18 +371,24 @@ impl Segments {
             let (w, nw, nh) = (prev.width, prev.width.div_ceil(2), h.div_ceil(2));
             next.width = nw;
             next.cells.resize(nw * nh, Bounds::NO_SEGMENT);
-            next.cells.par_chunks_mut(nw).enumerate().for_each(|(y, row)| {
-                let upper = &prev.cells[2 * y * w..(2 * y + 1) * w];
-                let lower = if 2 * y + 1 < h { &prev.cells[(2 * y + 1) * w..(2 * y + 2) * w] } else { upper };
-                for (x, cell) in row.iter_mut().enumerate() {
-                    let x1 = (2 * x + 1).min(w - 1); // an odd last column pairs with itself
-                    *cell = upper[2 * x].union(upper[x1]).union(lower[2 * x]).union(lower[x1]);
-                }
+            next.cells.par_chunks_mut(nw).zip(prev.cells.par_chunks(2 * w)).for_each(|(row, pair)| {
+                let (upper, lower) = pair.split_at(w);
+                reduce_rows(upper, if lower.is_empty() { upper } else { lower }, row);
             });
             h = nh;
             k += 1;
         }
         self.levels.truncate(k + 1);
+    }
+}
+
+/// One row of the next pyramid level from two rows of this one (`lower` is `upper` again for
+/// an odd last row; an odd last column pairs with itself).
+fn reduce_rows(upper: &[Bounds], lower: &[Bounds], out: &mut [Bounds]) {
+    let w = upper.len();
+    for (x, cell) in out.iter_mut().enumerate() {
+        let x1 = (2 * x + 1).min(w - 1);
+        *cell = upper[2 * x].union(upper[x1]).union(lower[2 * x]).union(lower[x1]);
     }
 }
 

@@ -429,14 +429,11 @@ impl Rect {
 /// A box corner in camera coordinates, with the values [`View::judge`] takes extremes of.
 #[derive(Clone, Copy, Debug, Default)]
 struct Corner {
+    x: f64,
+    y: f64,
     z: f64,
     /// Squared distance from the camera.
     far2: f64,
-    /// `u z` and `(u - u_last) z`, `v z` and `(v - v_last) z`: the side planes' functions.
-    left: f64,
-    right: f64,
-    top: f64,
-    bottom: f64,
     /// Pixel coordinates (meaningless unless `z > 0`).
     u: f64,
     v: f64,
@@ -650,19 +647,14 @@ impl<'a> View<'a> {
     /// What [`View::judge`] needs of a camera-frame point.
     #[inline]
     fn corner(&self, [x, y, z]: [f64; 3]) -> Corner {
-        // In camera coordinates a pixel column is u = (fx x + cx z) / z; the frustum's planes
-        // through the camera are fx x + cx z = 0 (u = 0) and fx x + (cx - u_last) z = 0.
-        let (left, top) = (self.fx * x + self.cx * z, self.fy * y + self.cy * z);
         let inv_z = 1.0 / z; // only used when z > 0
         Corner {
+            x,
+            y,
             z,
             far2: x * x + y * y + z * z,
-            left,
-            right: left - self.u_last * z,
-            top,
-            bottom: top - self.v_last * z,
-            u: left * inv_z,
-            v: top * inv_z,
+            u: self.fx * x * inv_z + self.cx,
+            v: self.fy * y * inv_z + self.cy,
         }
     }
 
@@ -679,33 +671,38 @@ impl<'a> View<'a> {
     #[inline]
     fn judge<'c>(&self, corners: impl Iterator<Item = &'c Corner> + Clone) -> (Seen, Option<Footprint>) {
         let (mut z_near, mut z_far, mut far2) = (f64::INFINITY, f64::NEG_INFINITY, 0.0f64);
-        let (mut left, mut right, mut top, mut bottom) =
-            (f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY);
+        let (mut u_min, mut u_max, mut v_min, mut v_max) =
+            (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
         for c in corners.clone() {
             z_near = min(z_near, c.z);
             z_far = max(z_far, c.z);
             far2 = max(far2, c.far2);
-            left = max(left, c.left);
-            right = min(right, c.right);
-            top = max(top, c.top);
-            bottom = min(bottom, c.bottom);
+            (u_min, u_max, v_min, v_max) = (min(u_min, c.u), max(u_max, c.u), min(v_min, c.v), max(v_max, c.v));
         }
-        // Behind the camera, or wholly outside one of the frustum's side planes.
-        if z_far <= 0.0 || left < 0.0 || right > 0.0 || top < 0.0 || bottom > 0.0 {
-            return (Seen::None, None);
+        if z_far <= 0.0 {
+            return (Seen::None, None); // behind the camera
         }
-        // The box's image; a box reaching behind the camera plane may cover any pixel.
-        let (mut u_min, mut u_max, mut v_min, mut v_max) = (0.0, self.u_last, 0.0, self.v_last);
         let mut inside_image = false;
         if z_near > 0.0 {
-            (u_min, u_max, v_min, v_max) = (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
-            for c in corners {
-                (u_min, u_max, v_min, v_max) = (min(u_min, c.u), max(u_max, c.u), min(v_min, c.v), max(v_max, c.v));
-            }
+            // In front of the camera: the image of the box is where its corners project (it
+            // misses the view frustum exactly when it holds no pixel centre, below).
             inside_image = u_min >= 0.0 && u_max <= self.u_last && v_min >= 0.0 && v_max <= self.v_last;
+        } else {
+            // Reaching behind the camera plane: any pixel may see it, unless it lies wholly
+            // outside one of the frustum's side planes through the camera, fx x + cx z = 0
+            // (u = 0), fx x + (cx - u_last) z = 0 (u = u_last), and the same for rows.
+            let outside = |f: &dyn Fn(&Corner) -> f64| corners.clone().all(|c| f(c) < 0.0);
+            if outside(&|c| self.fx * c.x + self.cx * c.z)
+                || outside(&|c| -(self.fx * c.x + (self.cx - self.u_last) * c.z))
+                || outside(&|c| self.fy * c.y + self.cy * c.z)
+                || outside(&|c| -(self.fy * c.y + (self.cy - self.v_last) * c.z))
+            {
+                return (Seen::None, None);
+            }
+            (u_min, u_max, v_min, v_max) = (0.0, self.u_last, 0.0, self.v_last);
         }
         let Some(rect) = Rect::of_pixel_centres((u_min, u_max), (v_min, v_max), self.u_last, self.v_last) else {
-            return (Seen::None, None); // between pixel centres
+            return (Seen::None, None); // between pixel centres, or outside the image
         };
         let d = self.seg.bounds(&rect);
         let (z_near32, z_far32) = (z_near as f32, z_far as f32);

@@ -486,3 +486,20 @@ fn crm_2d_experiment_writes_its_report() {
     );
     assert!(out.join("crm2d_maps.png").is_file());
 }
+
+#[test]
+fn logodds_marking_walk_and_project_build_the_same_map() {
+    let dir = workdir("marking");
+    let projected = logodds_map(&dir);
+    let data = dir.join("data");
+    let walked = dir.join("walk.mrfmap");
+    let o = run(&["build", s(&data), "-o", s(&walked), "--resolution", "0.05", "--marking", "walk", "-q"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let (a, b) = (mrfmap::map::Map::load(&projected).unwrap(), mrfmap::map::Map::load(&walked).unwrap());
+    assert!(a.voxels.len() > 1000);
+    let differ = a.voxels.iter().filter(|(k, v)| b.voxels.get(*k) != Some(*v)).count();
+    assert_eq!((a.voxels.len(), differ), (b.voxels.len(), 0), "walking and projecting disagree");
+    let o = run(&["build", s(&data), "-o", s(&dir.join("x.mrfmap")), "--resolution", "0.05", "--marking", "fly"]);
+    assert!(!o.status.success() && stderr(&o).contains("fly") && stderr(&o).contains("walk"), "{}", stderr(&o));
+    assert!(!dir.join("x.mrfmap").exists());
+}

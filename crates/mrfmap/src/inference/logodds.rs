@@ -189,14 +189,8 @@ impl LogOddsEngine {
     fn apply_marks(&mut self, marks: ScanMarks) {
         let SensorModel::HitMiss { p_hit, p_miss } = self.params.model else { unreachable!("hit/miss marks") };
         let (hit, miss, min, max) = (logit(p_hit) as f32, logit(p_miss) as f32, self.min, self.max);
-        // New bricks go into the hash map one by one; then the marked bricks, each its own
-        // work, are updated in parallel (serially this was a tenth of a projected frame).
-        for key in marks.bricks.keys() {
-            self.grid.brick_or_insert(*key);
-        }
-        let work: Vec<_> =
-            self.grid.bricks_mut().filter_map(|(key, brick)| Some((brick, marks.bricks.get(key)?))).collect();
-        work.into_par_iter().for_each(|(brick, m)| {
+        // Each marked brick is its own work (serially this was a tenth of a projected frame).
+        self.grid.update_bricks(&marks.bricks, |brick, m| {
             for slot in mask_slots(&m.hit) {
                 Self::update(brick.get_or_insert(slot, 0.0), hit, min, max);
             }

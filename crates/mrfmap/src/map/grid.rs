@@ -5,6 +5,7 @@
 //! values densely plus a 512-bit mask of which voxels are allocated: unallocated means
 //! unknown. Bricks are boxed so rehashing moves pointers, not kilobytes.
 
+use rayon::prelude::*;
 use rustc_hash::FxHashMap;
 
 /// Voxels per brick edge.
@@ -292,9 +293,27 @@ impl<V: Copy + Default> Grid<V> {
         self.bricks.iter().map(|(k, b)| (k, &**b))
     }
 
-    /// Mutable bricks in unspecified order (for parallel updates: collect, then `par_iter`).
-    pub fn bricks_mut(&mut self) -> impl Iterator<Item = (&BrickKey, &mut Brick<V>)> + '_ {
-        self.bricks.iter_mut().map(|(k, b)| (k, &mut **b))
+    /// Calls `update` on the brick of every key of `work` with that key's value, allocating
+    /// missing bricks, in parallel. The work grows with `work`, not with the grid: the bricks
+    /// are taken out of the hash map, updated, and put back.
+    ///
+    /// ```
+    /// use mrfmap::map::{BrickKey, Grid};
+    /// let mut grid: Grid<f32> = Grid::new(0.1).unwrap();
+    /// let work: rustc_hash::FxHashMap<BrickKey, usize> = [(BrickKey([0, 0, 0]), 3), (BrickKey([-1, 2, 0]), 5)].into_iter().collect();
+    /// grid.update_bricks(&work, |brick, slot| *brick.get_or_insert(*slot, 0.0) += 1.0);
+    /// assert_eq!((grid.len(), grid.brick_count()), (2, 2));
+    /// ```
+    pub fn update_bricks<T: Sync>(&mut self, work: &FxHashMap<BrickKey, T>, update: impl Fn(&mut Brick<V>, &T) + Sync)
+    where
+        V: Send,
+    {
+        let mut taken: Vec<(BrickKey, Box<Brick<V>>, &T)> = work
+            .iter()
+            .map(|(k, t)| (*k, self.bricks.remove(k).unwrap_or_else(|| Box::new(Brick::new())), t))
+            .collect();
+        taken.par_iter_mut().for_each(|(_, brick, t)| update(brick, t));
+        self.bricks.extend(taken.into_iter().map(|(k, brick, _)| (k, brick)));
     }
 
     /// Brick keys in sorted order, for deterministic output.

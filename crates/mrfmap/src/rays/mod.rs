@@ -47,17 +47,10 @@ pub struct PixelRay {
 /// world), and the norm of its z = 1 camera ray: range = z-depth * norm.
 #[inline]
 pub fn pixel_direction(camera: &Camera, rotation: &Matrix3<f64>, u: u32, v: u32) -> ([f64; 3], f64) {
-    let (ray, norm) = unit_camera_ray(camera, u, v);
-    let d = rotation * ray;
-    ([d.x, d.y, d.z], norm)
-}
-
-/// Camera-frame unit ray of pixel `(u, v)` and the norm of its z = 1 ray.
-#[inline]
-fn unit_camera_ray(camera: &Camera, u: u32, v: u32) -> (Vector3<f64>, f64) {
     let ray = camera.pixel_ray(u as f64, v as f64);
     let (unit, norm, _) = unit_ray(ray.x, ray.y);
-    (unit, norm)
+    let d = rotation * unit;
+    ([d.x, d.y, d.z], norm)
 }
 
 /// The unit ray along `(x, y, 1)`, the norm of `(x, y, 1)`, and its reciprocal. One division,

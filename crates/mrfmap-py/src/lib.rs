@@ -137,7 +137,7 @@ impl Mapper {
 #[pymethods]
 impl Mapper {
     #[new]
-    #[pyo3(signature = (resolution, fx, fy, cx, cy, width, height, engine="logodds", noise=None, max_range=None, particles=101, iterations=3, prior=0.1))]
+    #[pyo3(signature = (resolution, fx, fy, cx, cy, width, height, engine="logodds", noise=None, max_range=None, particles=101, iterations=3, prior=0.1, messages="sum"))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         resolution: f64,
@@ -153,6 +153,7 @@ impl Mapper {
         particles: usize,
         iterations: usize,
         prior: f64,
+        messages: &str,
     ) -> PyResult<Self> {
         let kind: EngineKind = engine.parse().map_err(py_err)?;
         let camera = Camera::new(fx, fy, cx, cy, width, height, 1000.0).map_err(py_err)?;
@@ -165,7 +166,8 @@ impl Mapper {
             None => None,
         };
         let limits = RayLimits { max_range, bounds: None };
-        let mrf = MrfParams { prior, iterations, ..MrfParams::default() };
+        let messages = messages.parse().map_err(py_err)?;
+        let mrf = MrfParams { prior, iterations, messages, ..MrfParams::default() };
         let inner = if kind == EngineKind::Mrf {
             Inner::Mrf(Box::new(MrfEngine::new(resolution, limits, mrf).map_err(py_err)?))
         } else {

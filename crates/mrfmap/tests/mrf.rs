@@ -117,8 +117,10 @@ fn removing_a_keyframe_equals_never_adding_it() {
     let mut a = build_mrf(&fr, 0.05, 3);
     let ids = a.keyframe_ids();
     a.remove_keyframe(ids[4]).unwrap();
-    a.run(40);
-    let b = build_mrf(&fr[..4], 0.05, 43);
+    // Every ray a factor: belief propagation settles slowly here (about 3x per 10 sweeps after
+    // a 40-sweep transient on this scene, whose surfaces lie on voxel boundaries).
+    a.run(150);
+    let b = build_mrf(&fr[..4], 0.05, 153);
     let d = max_difference(&a, &b);
     assert!(d < 1e-5, "largest marginal difference {d}");
 }
@@ -134,8 +136,8 @@ fn re_posing_a_keyframe_equals_building_with_the_new_pose() {
     let mut a = build_mrf(&wrong, 0.05, 3);
     let ids = a.keyframe_ids();
     a.set_pose(ids[2], fr[2].pose).unwrap();
-    a.run(40);
-    let b = build_mrf(&fr, 0.05, 43);
+    a.run(150);
+    let b = build_mrf(&fr, 0.05, 153);
     let d = max_difference(&a, &b);
     assert!(d < 1e-5, "largest marginal difference {d}");
 }
@@ -237,9 +239,14 @@ fn full_allocation_maps_free_space_band_allocation_leaves_it_unknown() {
     assert_eq!(band.marginal_at(p), None, "band allocation leaves free space unknown");
     let q = full.marginal_at(p).expect("full allocation maps it");
     assert!(q < 0.05, "free space marginal {q}");
-    // Both agree that the box top is occupied.
+    // Both agree that the box top is occupied: the 12 x 12 voxels under its face (z = 0.6
+    // lies on a voxel boundary), seen only at 19 degrees by 80x60 cameras, so some voxels get
+    // few rays (measured: 116 of 144 above 0.5 with either allocation).
     for e in [&band, &full] {
-        assert!(e.marginal_at([0.01, 0.01, 0.59]).unwrap() > 0.5);
+        let top = (-6..6).flat_map(|x| (-6..6).map(move |y| VoxelKey([x, y, 11])));
+        let occupied = top.filter(|k| e.marginal(*k).is_some_and(|p| p > 0.5)).count();
+        eprintln!("{occupied} of 144 box-top voxels occupied");
+        assert!(occupied >= 100, "{occupied} of 144 box-top voxels occupied");
     }
     assert!(full.marginals().count() > band.marginals().count());
 }
@@ -335,4 +342,59 @@ fn adding_a_keyframe_retraces_only_overlapping_keyframes() {
     // With nothing pending, run sweeps every keyframe.
     incremental.run(1);
     assert_eq!(incremental.last_run_keyframes(), 7);
+}
+
+/// One noisy keyframe of a wall (noise std 1.6 cm, voxels 5 cm, about two rays per voxel
+/// face). Every ray a factor: the wall is occupied, as log-odds says from the same frame.
+/// The paper's per-keyframe average counts the evidence of its rays once and leaves most of
+/// the wall below 0.5. Voxels behind the wall that no ray
+/// reaches are left out of the map (unknown), not reported at the prior.
+#[test]
+fn one_keyframe_marks_a_wall_and_unreached_voxels_stay_unknown() {
+    use mrfmap::inference::Aggregation;
+    let s = scene(&format!(
+        "{SMALL_CAMERA}[noise]\nbias = [0.0]\nstd = [0.002, 0.0, 0.0035]\n\
+         [[box]]\nmin = [2.0, -4.0, -1.0]\nmax = [2.3, 4.0, 1.0]\n[[view]]\neye = [0.0, 0.0, 0.0]\ntarget = [1.0, 0.0, 0.0]\n"
+    ));
+    let pose = look_at([0.0, 0.01, 0.013].into(), [1.0, 0.01, 0.013].into()).unwrap();
+    let fr = frames(&s, &[pose], Some(5));
+    let r = 0.05;
+    // Columns (y, z) of the wall inside the view, surface voxels x index 39..=41.
+    let columns: Vec<(i32, i32)> = (-20..20).flat_map(|y| (-15..15).map(move |z| (y, z))).collect();
+    let walled = |map: &Map| {
+        columns
+            .iter()
+            .filter(|(y, z)| {
+                (39..=41).any(|x| map.voxels.get(VoxelKey([x, *y, *z])).is_some_and(|v| v.occupancy > 0.5))
+            })
+            .count()
+    };
+    let build = |messages| {
+        let params = MrfParams { messages, ..Default::default() };
+        let mut e = MrfEngine::new(r, Default::default(), params).unwrap();
+        e.add_keyframe(fr[0].clone()).unwrap();
+        e.run(3);
+        e
+    };
+    let sum = build(Aggregation::Sum);
+    let average = build(Aggregation::Average);
+    let logodds = walled(&build_logodds(&fr, r));
+    let (with_sum, with_average) = (walled(&sum.map()), walled(&average.map()));
+    let n = columns.len();
+    eprintln!("wall columns occupied: sum {with_sum}, average {with_average}, log-odds {logodds} of {n}");
+    assert!(logodds as f64 > 0.95 * n as f64);
+    // Measured: sum 1030, average 318, log-odds 1198 of 1200. The face lies on a voxel
+    // boundary (x = 2.0): where a column's few rays split their evidence between the two
+    // voxels at the face, each holds 0.2-0.45 (P(one of them) is high, each alone is not).
+    assert!(with_sum as f64 > 0.8 * n as f64, "sum: {with_sum} of {n}");
+    assert!(with_sum > 2 * with_average, "sum {with_sum} vs average {with_average}");
+    // Inside the wall: 2.2 m (x index 44, 12 std behind the face) lies in a brick the band
+    // allocated, so the engine holds it, at the prior; no ray reaches it (they end 3 std past
+    // their depth), so the map leaves it out. At 2.5 m (index 50) no brick is allocated.
+    let map = sum.map();
+    let behind = VoxelKey([44, 0, 0]);
+    assert_eq!(sum.marginal(VoxelKey([50, 0, 0])), None);
+    assert!(sum.marginal(behind).is_some_and(|p| (p - 0.1).abs() < 1e-3), "{:?}", sum.marginal(behind));
+    assert_eq!(map.voxels.get(behind), None, "unreached voxel reported");
+    assert!(map.voxels.len() < sum.marginals().count());
 }

@@ -7,7 +7,8 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 use mrfmap::frames::Frame;
 use mrfmap::inference::{
-    Allocation, CrmParams, EngineConfig, EngineKind, KeyframeSelection, LogOddsParams, Marking, MrfParams, new_engine,
+    Aggregation, Allocation, CrmParams, EngineConfig, EngineKind, KeyframeSelection, LogOddsParams, Marking, MrfParams,
+    new_engine,
 };
 use mrfmap::map::Map;
 use mrfmap::rays::{Aabb, RayLimits};
@@ -38,6 +39,11 @@ pub struct MapOptions {
     /// keyframe so far (auto).
     #[arg(long, default_value = "all", value_parser = ["all", "auto"])]
     pub keyframes: String,
+    /// MRF: a keyframe's rays into one voxel send the sum of their log-odds messages, each
+    /// weighted by its length in the voxel (sum), or their length-weighted average counted
+    /// once (average, the paper's text).
+    #[arg(long, default_value = "sum", value_parser = ["sum", "average"])]
+    pub messages: String,
     /// CRM: particles per voxel pdf (memory per voxel is 4 * (particles + 1) bytes).
     #[arg(long, default_value_t = 101, value_parser = clap::value_parser!(u16).range(2..))]
     pub particles: u16,
@@ -76,6 +82,7 @@ impl MapOptions {
                 iterations: self.iterations,
                 allocation,
                 keyframes: if self.keyframes == "auto" { KeyframeSelection::AUTO } else { KeyframeSelection::All },
+                messages: if self.messages == "average" { Aggregation::Average } else { Aggregation::Sum },
             },
             crm: CrmParams { particles: self.particles as usize },
         })

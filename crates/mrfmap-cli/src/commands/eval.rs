@@ -8,8 +8,8 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result, bail};
 use mrfmap::frames::DepthImage;
 use mrfmap::map::Map;
-use mrfmap::outputs::AccuracyParams;
 use mrfmap::outputs::pictures::{ray_plot_svg, write_accuracy_image, write_text, write_truth_slices};
+use mrfmap::outputs::{AccuracyParams, PeakRule};
 use mrfmap::outputs::{Scorer, TruthMetrics, ViewScore, truth_metrics};
 use mrfmap::source::{Dataset, Scene};
 
@@ -26,6 +26,12 @@ pub struct MetricOptions {
     /// the mapped part, counts as accurate (default: invalid, as ALGORITHMS.md 6.1).
     #[arg(long)]
     pub paper_boundary: bool,
+    /// Where a ray's most likely surface is: `algorithms` (ALGORITHMS.md 6.1: the entry of
+    /// the voxel where the generating density peaks, compared as range) or `reference` (the
+    /// reference implementation: the exit of the voxel with the largest mean density,
+    /// compared as z-depth).
+    #[arg(long, default_value = "algorithms")]
+    pub metric: PeakRule,
 }
 
 impl MetricOptions {
@@ -40,6 +46,7 @@ impl MetricOptions {
             sigma: self.sigma,
             k: self.k,
             beyond_map_is_accurate: self.paper_boundary,
+            peak: self.metric,
             ..AccuracyParams::for_map(map)
         }
     }

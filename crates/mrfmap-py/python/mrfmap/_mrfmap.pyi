@@ -15,7 +15,10 @@ class Mapper:
     ``"crm"`` (a pdf of ``particles`` values per voxel: mean and variance). ``noise`` is a
     ``noise.toml`` forward sensor model (bias and std polynomials, per pixel patch when
     given); without one the MRF and CRM use ``0.002 + 0.0035 z^2`` m std, no bias.
-    ``max_range`` cuts longer readings, which then only clear space.
+    ``max_range`` cuts longer readings, which then only clear space. MRF: ``prior`` per
+    voxel and ``messages``: ``"sum"`` (every ray is a factor)
+    or ``"average"`` (one length-weighted average message per keyframe and voxel, the paper's
+    text; under-confident). The MRF's map leaves out voxels no ray has reached.
     Raises ``ValueError`` for bad parameters and ``OSError`` for unreadable files.
     """
 
@@ -34,6 +37,7 @@ class Mapper:
         particles: int = 101,
         iterations: int = 3,
         prior: float = 0.1,
+        messages: str = "sum",
     ) -> None: ...
     def add_frame(
         self,

@@ -23,7 +23,7 @@ use std::str::FromStr;
 
 pub use crm::{CrmEngine, CrmParams, crm_ray_factors};
 pub use logodds::{LogOddsEngine, LogOddsParams, Marking, SensorModel};
-pub use mrf::{Allocation, KeyframeId, KeyframeSelection, MU_EPS, MrfEngine, MrfParams, ray_messages};
+pub use mrf::{Aggregation, Allocation, KeyframeId, KeyframeSelection, MU_EPS, MrfEngine, MrfParams, ray_messages};
 
 use crate::error::{Error, Result};
 use crate::frames::{Frame, RangeScan};

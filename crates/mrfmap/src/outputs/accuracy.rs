@@ -17,6 +17,14 @@
 //! - otherwise *accurate* iff `|argmax omega - r_D| <= k sigma` (defaults `k = 1`,
 //!   `sigma = 0.05 m`: the reference implementation's setting; the paper's text says 1.5 sigma).
 //!
+//! The reference implementation places the peak differently ([`PeakRule::Exit`],
+//! `--metric reference`): per voxel `w = (vis_before - vis_after) / l`, the generating
+//! density averaged over the voxel; the peak is the voxel with the largest `w`, located where
+//! the ray *leaves* it, and compared with the held-out depth as z-depth,
+//! `|z_exit - z_D| <= k sigma`. The reference also adds the sensor bias at the exit to
+//! `z_exit` when its held-out target carries that bias; here held-out depths are true depths,
+//! so that term is zero. The visibility and no-voxel rules are the same.
+//!
 //! Unallocated voxels read as empty; for log-odds maps voxels at or below the occupancy
 //! threshold read as empty too, as the paper did for OctoMap.
 
@@ -47,6 +55,30 @@ pub struct AccuracyParams {
     /// above 0.9) whose held-out depth lies beyond the mapped part counts as *accurate*
     /// instead of *invalid*. Off by default (ALGORITHMS.md 6.1).
     pub beyond_map_is_accurate: bool,
+    /// Where the most likely generating surface is and how it is compared.
+    pub peak: PeakRule,
+}
+
+/// How a ray's most likely generating surface is found and compared with the held-out depth.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PeakRule {
+    /// ALGORITHMS.md 6.1: the largest `omega` (a voxel's entry), compared as range.
+    Entry,
+    /// The reference implementation: the voxel with the largest mean `omega` over its length,
+    /// located at its exit and compared as z-depth.
+    Exit,
+}
+
+impl std::str::FromStr for PeakRule {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "algorithms" => Ok(PeakRule::Entry),
+            "reference" => Ok(PeakRule::Exit),
+            _ => Err(format!("unknown metric {s:?}; available: algorithms, reference")),
+        }
+    }
 }
 
 impl AccuracyParams {
@@ -57,6 +89,7 @@ impl AccuracyParams {
             k: 1.0,
             empty_at_or_below: (map.engine == "logodds").then_some(OCCUPIED_THRESHOLD),
             beyond_map_is_accurate: false,
+            peak: PeakRule::Entry,
         }
     }
 
@@ -155,12 +188,15 @@ impl<'a> Scorer<'a> {
     }
 
     /// Walks `origin + s dir` (unit `dir`) through the map and classifies it against the
-    /// held-out range `r_d`; `profile` receives every step (a voxel, or a whole empty brick).
+    /// held-out range `r_d`; `cz` converts range to z-depth (the unit ray's z component in the
+    /// camera frame; [`PeakRule::Exit`] compares z-depths). `profile` receives every step (a
+    /// voxel, or a whole empty brick).
     pub fn classify_ray(
         &self,
         origin: [f64; 3],
         dir: [f64; 3],
         r_d: f64,
+        cz: f64,
         mut profile: impl FnMut(ProfileStep),
     ) -> RayVerdict {
         let invalid = RayVerdict { class: PixelClass::Invalid, peak: None, range: r_d };
@@ -207,10 +243,16 @@ impl<'a> Scorer<'a> {
                 let alpha = if p > 0.0 { -(1.0 - p).ln() / r } else { 0.0 };
                 profile(ProfileStep { s_in: c.s_in, s_out: c.s_out, occupancy: p, alpha, visibility: vis });
                 if alpha > 0.0 {
-                    if alpha * vis > best.0 {
-                        best = (alpha * vis, c.s_in);
+                    let after = vis * (-alpha * c.length()).exp();
+                    let candidate = match self.params.peak {
+                        PeakRule::Entry => (alpha * vis, c.s_in),
+                        // Never above alpha * vis, so `settled` below still holds.
+                        PeakRule::Exit => ((vis - after) / c.length().max(f64::MIN_POSITIVE), c.s_out),
+                    };
+                    if candidate.0 > best.0 {
+                        best = candidate;
                     }
-                    vis *= (-alpha * c.length()).exp();
+                    vis = after;
                 }
                 if settled(vis, best.0) { ControlFlow::Break(()) } else { ControlFlow::Continue(()) }
             });
@@ -228,7 +270,11 @@ impl<'a> Scorer<'a> {
             };
             return RayVerdict { class, peak: None, range: r_d };
         }
-        let accurate = (best.1 - r_d).abs() <= self.params.k * self.params.sigma;
+        let miss = match self.params.peak {
+            PeakRule::Entry => (best.1 - r_d).abs(),
+            PeakRule::Exit => (best.1 - r_d).abs() * cz,
+        };
+        let accurate = miss <= self.params.k * self.params.sigma;
         RayVerdict {
             class: if accurate { PixelClass::Accurate } else { PixelClass::Inaccurate },
             peak: Some(best.1),
@@ -247,7 +293,7 @@ impl<'a> Scorer<'a> {
                     None => PixelClass::NoDepth,
                     Some(z) => {
                         let (d, norm) = pixel_direction(camera, &rotation, u, v);
-                        self.classify_ray(origin, d, z as f64 * norm, |_| {}).class
+                        self.classify_ray(origin, d, z as f64 * norm, 1.0 / norm, |_| {}).class
                     }
                 })
             })
@@ -279,7 +325,7 @@ impl<'a> Scorer<'a> {
         let (rotation, origin) = pose_parts(pose);
         let (d, norm) = pixel_direction(camera, &rotation, u, v);
         let mut steps = Vec::new();
-        let verdict = self.classify_ray(origin, d, z as f64 * norm, |s| steps.push(s));
+        let verdict = self.classify_ray(origin, d, z as f64 * norm, 1.0 / norm, |s| steps.push(s));
         Some((steps, verdict))
     }
 }
@@ -343,7 +389,16 @@ mod tests {
     use crate::random::Rng;
 
     fn walk(map: &Map) -> Scorer<'_> {
-        Scorer::new(map, AccuracyParams { sigma: 0.05, k: 1.0, empty_at_or_below: None, beyond_map_is_accurate: false })
+        Scorer::new(
+            map,
+            AccuracyParams {
+                sigma: 0.05,
+                k: 1.0,
+                empty_at_or_below: None,
+                beyond_map_is_accurate: false,
+                peak: PeakRule::Entry,
+            },
+        )
     }
 
     /// A map with a slab of voxels at x index `i` (all y, z in -3..3), occupancy `p`.
@@ -363,11 +418,28 @@ mod tests {
         let mut map = Map::new("mrf", 0.1).unwrap();
         slab(&mut map, 0, 0.01);
         slab(&mut map, 20, 0.9);
-        let v = walk(&map).classify_ray(O, X, 2.03, |_| {});
+        let v = walk(&map).classify_ray(O, X, 2.03, 1.0, |_| {});
         assert_eq!(v.class, PixelClass::Accurate);
         assert!((v.peak.unwrap() - 2.0).abs() < 1e-12);
         // 0.2 m further away than the wall: the map explains the ray wrongly.
-        assert_eq!(walk(&map).classify_ray(O, X, 2.25, |_| {}).class, PixelClass::Inaccurate);
+        assert_eq!(walk(&map).classify_ray(O, X, 2.25, 1.0, |_| {}).class, PixelClass::Inaccurate);
+    }
+
+    #[test]
+    fn reference_rule_places_the_peak_at_the_exit_and_compares_z_depth() {
+        let mut map = Map::new("mrf", 0.1).unwrap();
+        slab(&mut map, 20, 0.9);
+        let reference = Scorer::new(&map, AccuracyParams { peak: PeakRule::Exit, ..AccuracyParams::for_map(&map) });
+        // The held-out surface at the wall voxel's far face: the entry rule misses by 0.1 m.
+        assert_eq!(walk(&map).classify_ray(O, X, 2.1, 1.0, |_| {}).class, PixelClass::Inaccurate);
+        let v = reference.classify_ray(O, X, 2.1, 1.0, |_| {});
+        assert_eq!(v.class, PixelClass::Accurate);
+        assert!((v.peak.unwrap() - 2.1).abs() < 1e-12, "peak {:?}", v.peak);
+        // 0.08 m of range is 0.04 m of z-depth on a ray at 60 degrees to the optical axis.
+        assert_eq!(reference.classify_ray(O, X, 2.18, 1.0, |_| {}).class, PixelClass::Inaccurate);
+        assert_eq!(reference.classify_ray(O, X, 2.18, 0.5, |_| {}).class, PixelClass::Accurate);
+        assert_eq!("reference".parse::<PeakRule>(), Ok(PeakRule::Exit));
+        assert!("exit".parse::<PeakRule>().is_err());
     }
 
     #[test]
@@ -375,7 +447,7 @@ mod tests {
         let mut map = Map::new("mrf", 0.1).unwrap();
         slab(&mut map, 10, 0.8);
         slab(&mut map, 20, 0.99);
-        let v = walk(&map).classify_ray(O, X, 2.0, |_| {});
+        let v = walk(&map).classify_ray(O, X, 2.0, 1.0, |_| {});
         assert_eq!(v.class, PixelClass::Inaccurate);
         assert!((v.peak.unwrap() - 1.0).abs() < 1e-12);
     }
@@ -395,11 +467,11 @@ mod tests {
         for i in 0..15 {
             slab(&mut free, i, 0.001);
         }
-        assert_eq!(walk(&free).classify_ray(O, X, 1.0, |_| {}).class, PixelClass::Inaccurate);
-        assert_eq!(walk(&free).classify_ray(O, X, 2.0, |_| {}).class, PixelClass::Invalid);
+        assert_eq!(walk(&free).classify_ray(O, X, 1.0, 1.0, |_| {}).class, PixelClass::Inaccurate);
+        assert_eq!(walk(&free).classify_ray(O, X, 2.0, 1.0, |_| {}).class, PixelClass::Invalid);
         let paper = AccuracyParams { beyond_map_is_accurate: true, ..AccuracyParams::for_map(&free) };
-        assert_eq!(Scorer::new(&free, paper).classify_ray(O, X, 2.0, |_| {}).class, PixelClass::Accurate);
-        assert_eq!(Scorer::new(&free, paper).classify_ray(O, X, 1.0, |_| {}).class, PixelClass::Inaccurate);
+        assert_eq!(Scorer::new(&free, paper).classify_ray(O, X, 2.0, 1.0, |_| {}).class, PixelClass::Accurate);
+        assert_eq!(Scorer::new(&free, paper).classify_ray(O, X, 1.0, 1.0, |_| {}).class, PixelClass::Inaccurate);
     }
 
     #[test]
@@ -409,7 +481,7 @@ mod tests {
         slab(&mut map, 20, 0.8);
         let params = AccuracyParams::for_map(&map);
         assert_eq!(params.empty_at_or_below, Some(0.5));
-        let v = Scorer::new(&map, params).classify_ray(O, X, 2.02, |_| {});
+        let v = Scorer::new(&map, params).classify_ray(O, X, 2.02, 1.0, |_| {});
         assert_eq!(v.class, PixelClass::Accurate);
     }
 
@@ -425,7 +497,7 @@ mod tests {
         let dir = [0.6, 0.8, 0.0];
         let origin = [0.5 - 0.06, 0.075 - 0.08, 0.05];
         let mut steps = Vec::new();
-        walk(&map).classify_ray(origin, dir, 1.0, |s| steps.push(s));
+        walk(&map).classify_ray(origin, dir, 1.0, 1.0, |s| steps.push(s));
         let s = steps.iter().find(|s| s.occupancy > 0.0).unwrap();
         let fraction = (s.s_out - s.s_in) / 0.1;
         assert!((fraction - 0.3125).abs() < 1e-9, "fraction {fraction}");
@@ -450,7 +522,7 @@ mod tests {
             let n = dir.iter().map(|d| d * d).sum::<f64>().sqrt();
             dir = dir.map(|d| d / n);
             let mut steps = Vec::new();
-            w.classify_ray(origin, dir, 100.0, |s| steps.push(s));
+            w.classify_ray(origin, dir, 100.0, 1.0, |s| steps.push(s));
             // Integrate alpha by midpoint sampling from the walk's start to each step's entry.
             let h = 1e-5;
             let mut integral = 0.0f64;

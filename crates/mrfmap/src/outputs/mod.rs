@@ -19,7 +19,7 @@ mod render;
 mod truth;
 
 pub use accuracy::{
-    AccuracyParams, PixelClass, ProfileStep, RayVerdict, Scorer, VISIBILITY_FLOOR, ViewScore, score_view,
+    AccuracyParams, PeakRule, PixelClass, ProfileStep, RayVerdict, Scorer, VISIBILITY_FLOOR, ViewScore, score_view,
 };
 pub use canvas::{Canvas, PlotArea, Rgb, nice_step};
 pub use octomap::{OctomapFormat, OctomapLeaf, OctomapSummary, OctomapTree, TREE_DEPTH, read_octomap, write_octomap};

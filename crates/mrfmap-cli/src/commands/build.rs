@@ -158,7 +158,12 @@ pub fn build_map(
     }
     bar.finish_and_clear();
     let t = Instant::now();
-    engine.finish()?;
+    let bar = crate::progress::bar(0, "inference");
+    engine.finish_with_progress(&mut |done, total| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+    })?;
+    bar.finish_and_clear();
     integrate_time += t.elapsed();
     Ok(BuildReport { map: engine.map(), frames: indices.len(), integrate_time })
 }

@@ -62,6 +62,12 @@ pub trait Engine: Send {
     fn finish(&mut self) -> Result<()> {
         Ok(())
     }
+    /// [`Engine::finish`], calling `progress(done, total)` as its work advances (the MRF:
+    /// after each keyframe update of each iteration).
+    fn finish_with_progress(&mut self, progress: &mut dyn FnMut(usize, usize)) -> Result<()> {
+        let _ = progress;
+        self.finish()
+    }
     /// The current map: occupancy (and variance where the engine has one) per voxel.
     fn map(&self) -> Map;
 }

@@ -266,6 +266,11 @@ impl MrfEngine {
     /// overlaps away are left to later runs.) With no such edits pending it sweeps every
     /// keyframe, so repeated calls keep converging.
     pub fn run(&mut self, iterations: usize) {
+        self.run_with_progress(iterations, &mut |_, _| {});
+    }
+
+    /// [`MrfEngine::run`], calling `progress(done, total)` after each keyframe update.
+    pub fn run_with_progress(&mut self, iterations: usize, progress: &mut dyn FnMut(usize, usize)) {
         let active: Vec<usize> = if self.changed.is_empty() {
             (0..self.keyframes.len()).collect()
         } else {
@@ -274,9 +279,11 @@ impl MrfEngine {
                 .filter(|&i| self.keyframes[i].bricks.iter().any(|b| changed.contains(b)))
                 .collect()
         };
-        for _ in 0..iterations {
-            for &i in &active {
+        let total = iterations * active.len();
+        for round in 0..iterations {
+            for (n, &i) in active.iter().enumerate() {
                 self.update_keyframe(i);
+                progress(round * active.len() + n + 1, total);
             }
         }
         self.changed.clear();
@@ -603,7 +610,11 @@ impl Engine for MrfEngine {
     }
 
     fn finish(&mut self) -> Result<()> {
-        self.run(self.params.iterations);
+        self.finish_with_progress(&mut |_, _| {})
+    }
+
+    fn finish_with_progress(&mut self, progress: &mut dyn FnMut(usize, usize)) -> Result<()> {
+        self.run_with_progress(self.params.iterations, progress);
         Ok(())
     }
 

@@ -6,6 +6,7 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result};
 use mrfmap::inference::EngineKind;
+use mrfmap::outputs::PeakRule;
 use mrfmap::outputs::pictures::write_text;
 
 use super::build::{MapOptions, check_indices};
@@ -64,6 +65,12 @@ fn extra_flags(a: &Args) -> String {
     }
     if a.metric.paper_boundary {
         f.push_str(" --paper-boundary");
+    }
+    if a.metric.metric == PeakRule::Exit {
+        f.push_str(" --metric reference");
+    }
+    if a.options.messages != "sum" {
+        let _ = write!(f, " --messages {}", a.options.messages);
     }
     f
 }
@@ -129,7 +136,7 @@ pub fn run(a: Args) -> Result<()> {
     }
     let report = format!(
         "# mrfmap comparison: {ds}\n\n\
-         Leave-one-out accuracy (ALGORITHMS.md 6.1): each view is held out in turn, a map is built from the\n\
+         Leave-one-out accuracy ({metric}): each view is held out in turn, a map is built from the\n\
          other views' `depth/`, and the held-out view's `gt_depth/` (or `depth/`) is scored; mean +- sample std\n\
          over {n} views. Tolerance {k} x {sigma} m; boundary rule: {rule}. Views: {views:?}.\n\n{table}\n\
          ## Pictures: view {picture_view}, ray of pixel ({pu}, {pv})\n\n\
@@ -140,6 +147,10 @@ pub fn run(a: Args) -> Result<()> {
         ds = a.dataset.display(),
         n = views.len(),
         k = a.metric.k,
+        metric = match a.metric.metric {
+            PeakRule::Entry => "ALGORITHMS.md 6.1, peak at voxel entry",
+            PeakRule::Exit => "the reference implementation's rule, peak at voxel exit, z-depth",
+        },
         sigma = a.metric.sigma,
         rule = if a.metric.paper_boundary {
             "the paper's (unstopped rays ending beyond the map are accurate)"

@@ -35,6 +35,10 @@ fn frames(scene: &Scene, poses: &[Pose], seed: Option<u64>) -> Vec<Frame> {
         .collect()
 }
 
+/// A wall whose face lies on a voxel boundary (x = 2.0) and a Kinect-like noisy camera.
+const NOISY_WALL: &str = "[noise]\nbias = [0.0]\nstd = [0.002, 0.0, 0.0035]\n\
+    [[box]]\nmin = [2.0, -4.0, -1.0]\nmax = [2.3, 4.0, 1.0]\n[[view]]\neye = [0.0, 0.0, 0.0]\ntarget = [1.0, 0.0, 0.0]\n";
+
 const SMALL_CAMERA: &str =
     "[camera]\nfx = 60.0\nfy = 60.0\ncx = 39.5\ncy = 29.5\nwidth = 80\nheight = 60\ndepth_scale = 5000.0\n";
 
@@ -60,11 +64,7 @@ fn build_logodds(frames: &[Frame], resolution: f64) -> Map {
 /// voxels; the MRF, which knows the noise, explains most of those readings and keeps more.
 #[test]
 fn glancing_views_do_not_carve_a_wall() {
-    // A wall whose face lies on a voxel boundary (x = 2.0), a Kinect-like noisy camera.
-    let s = scene(&format!(
-        "{SMALL_CAMERA}[noise]\nbias = [0.0]\nstd = [0.002, 0.0, 0.0035]\n\
-         [[box]]\nmin = [2.0, -4.0, -1.0]\nmax = [2.3, 4.0, 1.0]\n[[view]]\neye = [0.0, 0.0, 0.0]\ntarget = [1.0, 0.0, 0.0]\n"
-    ));
+    let s = scene(&format!("{SMALL_CAMERA}{NOISY_WALL}"));
     let head_on = look_at([0.0, 0.01, 0.013].into(), [1.0, 0.01, 0.013].into()).unwrap();
     let glancing: Vec<Pose> = [0.0, 0.1, 0.2]
         .iter()
@@ -352,10 +352,7 @@ fn adding_a_keyframe_retraces_only_overlapping_keyframes() {
 #[test]
 fn one_keyframe_marks_a_wall_and_unreached_voxels_stay_unknown() {
     use mrfmap::inference::Aggregation;
-    let s = scene(&format!(
-        "{SMALL_CAMERA}[noise]\nbias = [0.0]\nstd = [0.002, 0.0, 0.0035]\n\
-         [[box]]\nmin = [2.0, -4.0, -1.0]\nmax = [2.3, 4.0, 1.0]\n[[view]]\neye = [0.0, 0.0, 0.0]\ntarget = [1.0, 0.0, 0.0]\n"
-    ));
+    let s = scene(&format!("{SMALL_CAMERA}{NOISY_WALL}"));
     let pose = look_at([0.0, 0.01, 0.013].into(), [1.0, 0.01, 0.013].into()).unwrap();
     let fr = frames(&s, &[pose], Some(5));
     let r = 0.05;

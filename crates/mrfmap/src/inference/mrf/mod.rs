@@ -164,6 +164,9 @@ const UNOBSERVED: f64 = 0.01;
 /// Image rows per block of parallel work; fixed so results do not depend on thread count.
 const ROWS_PER_BLOCK: u32 = 16;
 
+/// Blocks traced before their partial sums are merged (bounds the memory of a keyframe pass).
+const BLOCKS_IN_FLIGHT: usize = 8;
+
 /// MRFMap inference over keyframes.
 ///
 /// ```
@@ -442,31 +445,34 @@ impl MrfEngine {
         let kf = &self.keyframes[i];
         let rays = FrameRays::new(&kf.frame);
         let blocks: Vec<u32> = (0..rays.rows().div_ceil(ROWS_PER_BLOCK)).collect();
-        // Per block: voxel -> (sum of length * message, sum of length), in bricks so that a
-        // ray's consecutive voxels share one lookup.
-        let partials: Vec<Grid<(f32, f32)>> = blocks
-            .par_iter()
-            .map(|&b| {
-                let mut acc = Grid::new(self.resolution()).expect("valid resolution");
-                let mut scratch = RayScratch::default();
-                let rows = b * ROWS_PER_BLOCK..((b + 1) * ROWS_PER_BLOCK).min(rays.rows());
-                for v in rows {
-                    for ray in rays.row(v) {
-                        self.trace_ray(kf, &ray, &mut scratch, &mut acc);
-                    }
-                }
-                acc
-            })
-            .collect();
-        // Merged in block order: the same sums whatever the number of threads.
+        // Per block: voxel -> (sum of the rays' contributions, sum of length), in bricks so
+        // that a ray's consecutive voxels share one lookup. Blocks are traced a few at a time
+        // and merged in block order: the same sums whatever the number of threads, and only a
+        // few blocks' partial grids in memory at once.
         let mut total: Grid<(f32, f32)> = Grid::new(self.resolution()).expect("valid resolution");
-        for part in partials {
-            for (bk, brick) in part.bricks() {
-                let target = total.brick_or_insert(*bk);
-                for (slot, (wm, w)) in brick.iter() {
-                    let e = target.get_or_insert(slot, (0.0, 0.0));
-                    e.0 += wm;
-                    e.1 += w;
+        for chunk in blocks.chunks(BLOCKS_IN_FLIGHT) {
+            let partials: Vec<Grid<(f32, f32)>> = chunk
+                .par_iter()
+                .map(|&b| {
+                    let mut acc = Grid::new(self.resolution()).expect("valid resolution");
+                    let mut scratch = RayScratch::default();
+                    let rows = b * ROWS_PER_BLOCK..((b + 1) * ROWS_PER_BLOCK).min(rays.rows());
+                    for v in rows {
+                        for ray in rays.row(v) {
+                            self.trace_ray(kf, &ray, &mut scratch, &mut acc);
+                        }
+                    }
+                    acc
+                })
+                .collect();
+            for part in partials {
+                for (bk, brick) in part.bricks() {
+                    let target = total.brick_or_insert(*bk);
+                    for (slot, (wm, w)) in brick.iter() {
+                        let e = target.get_or_insert(slot, (0.0, 0.0));
+                        e.0 += wm;
+                        e.1 += w;
+                    }
                 }
             }
         }

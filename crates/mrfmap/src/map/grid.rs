@@ -212,6 +212,12 @@ impl<V: Copy + Default> Brick<V> {
         self.mask.iter().all(|w| *w == 0)
     }
 
+    /// Mutable value at `slot` if allocated.
+    #[inline]
+    pub fn get_mut(&mut self, slot: usize) -> Option<&mut V> {
+        mask_has(&self.mask, slot).then(|| &mut self.values[slot])
+    }
+
     /// Allocated `(slot, value)` pairs in slot order.
     pub fn iter(&self) -> impl Iterator<Item = (usize, &V)> + '_ {
         mask_slots(&self.mask).map(move |s| (s, &self.values[s]))
@@ -286,6 +292,11 @@ impl<V: Copy + Default> Grid<V> {
     /// A brick if present.
     pub fn brick(&self, key: BrickKey) -> Option<&Brick<V>> {
         self.bricks.get(&key).map(|b| &**b)
+    }
+
+    /// The brick `key`, mutable, if present.
+    pub fn brick_mut(&mut self, key: BrickKey) -> Option<&mut Brick<V>> {
+        self.bricks.get_mut(&key).map(|b| &mut **b)
     }
 
     /// Bricks in unspecified order.

@@ -431,17 +431,20 @@ impl MrfEngine {
     fn update_keyframe(&mut self, i: usize) {
         let new = self.trace_keyframe(i);
         self.withdraw_messages(i);
-        let messages = &mut self.keyframes[i].messages;
-        for (key, m) in new {
-            if let Some(s) = self.sums.get_mut(key) {
-                *s += m.0;
-                messages.insert(key, m);
+        // Every traced voxel is allocated in the sums (rays skip the others).
+        for (bk, brick) in new.bricks() {
+            let Some(sums) = self.sums.brick_mut(*bk) else { continue };
+            for (slot, m) in brick.iter() {
+                if let Some(s) = sums.get_mut(slot) {
+                    *s += m.0;
+                }
             }
         }
+        self.keyframes[i].messages = new;
     }
 
     /// Keyframe `i`'s new messages: per voxel `W_k` and `W_k` per metre of ray.
-    fn trace_keyframe(&self, i: usize) -> Vec<(VoxelKey, (f32, f32))> {
+    fn trace_keyframe(&self, i: usize) -> Grid<(f32, f32)> {
         let kf = &self.keyframes[i];
         let rays = FrameRays::new(&kf.frame);
         let blocks: Vec<u32> = (0..rays.rows().div_ceil(ROWS_PER_BLOCK)).collect();
@@ -476,19 +479,17 @@ impl MrfEngine {
                 }
             }
         }
-        let mut out: Vec<(VoxelKey, (f32, f32))> = total
-            .iter()
-            .filter(|(_, (_, w))| *w > 0.0)
-            .map(|(k, (wm, w))| {
-                let msg = match self.params.messages {
-                    Aggregation::Average => logit((*wm as f64 / *w as f64).clamp(MSG_EPS, 1.0 - MSG_EPS)),
-                    Aggregation::Sum => *wm as f64,
-                };
-                (k, (msg as f32, (msg / *w as f64) as f32))
-            })
-            .collect();
-        out.sort_unstable_by_key(|(k, _)| *k);
-        out
+        let messages = self.params.messages;
+        total.map(|&(wm, w)| {
+            if w <= 0.0 {
+                return (0.0, 0.0); // only grazing crossings of zero length: no evidence
+            }
+            let msg = match messages {
+                Aggregation::Average => logit((wm as f64 / w as f64).clamp(MSG_EPS, 1.0 - MSG_EPS)) as f32,
+                Aggregation::Sum => wm,
+            };
+            (msg, msg / w)
+        })
     }
 
     /// One ray: gather the allocated voxels it crosses, their cavities and likelihoods, and

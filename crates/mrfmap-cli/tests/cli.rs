@@ -503,3 +503,40 @@ fn logodds_marking_walk_and_project_build_the_same_map() {
     assert!(!o.status.success() && stderr(&o).contains("fly") && stderr(&o).contains("walk"), "{}", stderr(&o));
     assert!(!dir.join("x.mrfmap").exists());
 }
+
+#[test]
+fn mrf_message_modes_reference_metric_and_bad_values() {
+    let dir = workdir("mrf-modes");
+    let data = dataset(&dir);
+    let occupied = |messages: &str| {
+        let map = dir.join(format!("{messages}.mrfmap"));
+        let o = run(&[
+            "build",
+            s(&data),
+            "-o",
+            s(&map),
+            "--resolution",
+            "0.05",
+            "--engine",
+            "mrf",
+            "--messages",
+            messages,
+            "-q",
+        ]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        let map = mrfmap::map::Map::load(&map).unwrap();
+        assert_eq!(map.params.get("messages").map(String::as_str), Some(messages));
+        map.occupied_count()
+    };
+    let (sum, average) = (occupied("sum"), occupied("average"));
+    assert!(sum > average, "every ray counted marks more surface: sum {sum}, average {average}");
+    // Both metrics score the map; the reference metric's name reaches the report.
+    for metric in ["algorithms", "reference"] {
+        let o = run(&["eval", s(&dir.join("sum.mrfmap")), s(&data), "--views", "0", "--metric", metric, "--json"]);
+        assert!(o.status.success() && stdout(&o).contains("\"accuracy\""), "{}", stderr(&o));
+    }
+    let o = run(&["eval", s(&dir.join("sum.mrfmap")), s(&data), "--metric", "exit"]);
+    assert!(!o.status.success() && stderr(&o).contains("reference"), "{}", stderr(&o));
+    build_fails(&data, &["--engine", "mrf", "--iterations", "0"], &["iterations"]);
+    build_fails(&data, &["--engine", "mrf", "--messages", "mean"], &["mean", "average"]);
+}

@@ -26,9 +26,9 @@ pub struct MapOptions {
     /// Noise model file (default: the dataset's noise.toml when present).
     #[arg(long)]
     pub noise: Option<PathBuf>,
-    /// MRF: belief-propagation iterations.
-    #[arg(long, default_value_t = 3)]
-    pub iterations: usize,
+    /// MRF: belief-propagation iterations (at least 1: no iteration infers nothing).
+    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u32).range(1..))]
+    pub iterations: u32,
     /// MRF: prior occupancy of every voxel.
     #[arg(long, default_value_t = 0.1)]
     pub prior: f64,
@@ -79,7 +79,7 @@ impl MapOptions {
             logodds: LogOddsParams { marking: marking(&self.marking), ..Default::default() },
             mrf: MrfParams {
                 prior: self.prior,
-                iterations: self.iterations,
+                iterations: self.iterations as usize,
                 allocation,
                 keyframes: if self.keyframes == "auto" { KeyframeSelection::AUTO } else { KeyframeSelection::All },
                 messages: if self.messages == "average" { Aggregation::Average } else { Aggregation::Sum },

@@ -505,7 +505,7 @@ fn logodds_marking_walk_and_project_build_the_same_map() {
 }
 
 #[test]
-fn mrf_message_modes_reference_metric_and_bad_values() {
+fn mrf_message_modes_reference_metric_and_bad_values_and_plain_errors() {
     let dir = workdir("mrf-modes");
     let data = dataset(&dir);
     let occupied = |messages: &str| {
@@ -538,5 +538,10 @@ fn mrf_message_modes_reference_metric_and_bad_values() {
     let o = run(&["eval", s(&dir.join("sum.mrfmap")), s(&data), "--metric", "exit"]);
     assert!(!o.status.success() && stderr(&o).contains("reference"), "{}", stderr(&o));
     build_fails(&data, &["--engine", "mrf", "--iterations", "0"], &["iterations"]);
+    // A missing output folder is refused before any work, and the OS message is said once.
+    let o = run(&["build", s(&data), "-o", s(&dir.join("no/such/m.mrfmap")), "--resolution", "0.05"]);
+    assert!(!o.status.success() && stderr(&o).contains("output folder"), "{}", stderr(&o));
+    let o = run(&["info", s(&dir)]);
+    assert!(!o.status.success() && stderr(&o).matches("os error").count() == 1, "{}", stderr(&o));
     build_fails(&data, &["--engine", "mrf", "--messages", "mean"], &["mean", "average"]);
 }

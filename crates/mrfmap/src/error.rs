@@ -9,13 +9,15 @@ use std::path::{Path, PathBuf};
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
     /// The operating system refused a read or write.
-    #[error("{}: {source}", path.display())]
+    ///
+    /// The operating system's message is part of this error's text, not a separate `source`,
+    /// so that printing the error chain (`{:#}`) says it once.
+    #[error("{}: {error}", path.display())]
     Io {
         /// The file or folder that was being accessed.
         path: PathBuf,
         /// What the operating system said.
-        #[source]
-        source: std::io::Error,
+        error: std::io::Error,
     },
     /// A file was read but its content is wrong (bad key, wrong size, corrupt, ...).
     #[error("{}: {message}", path.display())]
@@ -33,7 +35,7 @@ pub enum Error {
 impl Error {
     /// An I/O error on `path`.
     pub fn io(path: impl AsRef<Path>, source: std::io::Error) -> Self {
-        Error::Io { path: path.as_ref().to_path_buf(), source }
+        Error::Io { path: path.as_ref().to_path_buf(), error: source }
     }
 
     /// A content error in the file `path`.

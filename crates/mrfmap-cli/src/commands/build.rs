@@ -170,6 +170,11 @@ pub fn build_map(
 
 pub fn run(a: Args) -> Result<()> {
     let kind: EngineKind = a.engine.parse()?;
+    // Found out before the work, not after it.
+    let folder = a.output.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(std::path::Path::new("."));
+    if !folder.is_dir() {
+        bail!("{}: the output folder {} does not exist", a.output.display(), folder.display());
+    }
     let config = a.options.config(kind, a.resolution)?;
     let dataset = a.options.open(&a.dataset)?;
     let indices = select_frames(dataset.len(), &a.frames, &a.exclude)?;

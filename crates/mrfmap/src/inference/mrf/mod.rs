@@ -4,16 +4,20 @@
 //!
 //! How the pieces fit:
 //! - [`ray_messages`] computes one ray factor's outgoing messages in linear time.
-//! - Each keyframe keeps, per voxel its rays reach, its message `W_k` (log-odds) and the
-//!   message per metre of ray inside the voxel. Each voxel keeps
-//!   `S = logit(prior) + sum_k W_k`; the marginal is `sigmoid(S)`.
+//! - Each keyframe sends every voxel its rays reach one message `W_k` (log-odds). Each voxel
+//!   keeps `S = logit(prior) + sum_k W_k`; the marginal is `sigmoid(S)`. A keyframe stores
+//!   one f32 per voxel from which `W_k` follows (see `Keyframe::messages`).
 //! - How a keyframe's rays through one voxel make `W_k` is [`Aggregation`]:
 //!   - [`Aggregation::Sum`] (default): every ray is a factor, as in the model. `W_k` is the
 //!     sum of the rays' log-odds messages, each weighted by its length in the voxel over the
 //!     voxel edge (a full crossing counts once, a corner clip a little). The message into
 //!     one ray is the cavity `sigmoid(S - own)`, where the ray's own last message is taken
-//!     as its length times the keyframe's message per metre (per-ray messages are not
-//!     stored; rays of one keyframe through one voxel are nearly parallel and alike).
+//!     as its length times the keyframe's message per metre, `W_k / L_k` with `L_k` the
+//!     length of all its rays in the voxel (per-ray messages are not stored; rays of one
+//!     keyframe through one voxel are nearly parallel and alike). That per-metre message is
+//!     what the keyframe stores: `L_k` is geometry, summed again by every trace, so
+//!     `W_k = L_k W_k / L_k` is recovered when the message is replaced; removing or re-posing
+//!     a keyframe walks its rays once more for their lengths.
 //!   - [`Aggregation::Average`]: the paper's text (sec. IV-A): the length-weighted average
 //!     message, counted once per keyframe, with cavity `sigmoid(S - W_k)`. A voxel seen
 //!     by 100 rays of a keyframe then gets the evidence of one, so surfaces stay near the
@@ -147,9 +151,12 @@ struct Keyframe {
     noise: Arc<NoiseModel>,
     /// Bricks this keyframe allocated (counted in `MrfEngine::brick_refs`).
     bricks: Vec<BrickKey>,
-    /// Per voxel: the keyframe's message `W_k` (log-odds, its share of `S`) and that message
-    /// per metre of ray inside the voxel (for a ray's own share under [`Aggregation::Sum`]).
-    messages: Grid<(f32, f32)>,
+    /// Per voxel, under [`Aggregation::Sum`]: the keyframe's message per metre of its rays
+    /// inside the voxel, `W_k / L_k`. A ray's own share is that times its length, and `W_k`
+    /// that times `L_k`, which is geometry: every trace of the keyframe sums the same lengths.
+    /// Under [`Aggregation::Average`]: `W_k` itself. One value per voxel, as for the paper's
+    /// average.
+    messages: Grid<f32>,
 }
 
 /// Messages are kept away from 0 and 1 so that their log-odds stay finite.
@@ -335,12 +342,16 @@ impl MrfEngine {
         self.keyframes.iter().position(|k| k.id == id).ok_or_else(|| Error::Invalid(format!("no keyframe {id:?}")))
     }
 
-    /// Takes keyframe `i`'s messages out of the sums and forgets them.
+    /// Takes keyframe `i`'s messages out of the sums and forgets them. Under
+    /// [`Aggregation::Sum`] this walks its rays again for their lengths (no forward model).
     fn withdraw_messages(&mut self, i: usize) {
+        let mode = self.params.messages;
+        let lengths = (mode == Aggregation::Sum).then(|| self.trace_keyframe(i, true));
         let kf = &mut self.keyframes[i];
-        for (key, m) in kf.messages.iter() {
+        for (key, stored) in kf.messages.iter() {
+            let length = lengths.as_ref().and_then(|g| g.get(key)).map_or(0.0, |e| e.1);
             if let Some(s) = self.sums.get_mut(key) {
-                *s -= m.0;
+                *s -= message_of(mode, *stored, length);
             }
         }
         kf.messages = Grid::new(self.sums.resolution()).expect("valid resolution");
@@ -429,22 +440,31 @@ impl MrfEngine {
 
     /// Traces keyframe `i` with the current cavities and replaces its messages in the sums.
     fn update_keyframe(&mut self, i: usize) {
-        let new = self.trace_keyframe(i);
-        self.withdraw_messages(i);
-        // Every traced voxel is allocated in the sums (rays skip the others).
-        for (bk, brick) in new.bricks() {
-            let Some(sums) = self.sums.brick_mut(*bk) else { continue };
-            for (slot, m) in brick.iter() {
-                if let Some(s) = sums.get_mut(slot) {
-                    *s += m.0;
-                }
+        let total = self.trace_keyframe(i, false);
+        let mode = self.params.messages;
+        let kf = &self.keyframes[i];
+        let mut messages: Grid<f32> = Grid::new(self.resolution()).expect("valid resolution");
+        // Voxel by voxel, out with the old message and in with the new. This trace reached the
+        // same voxels with the same lengths as the last one (a freed brick left every
+        // keyframe's messages), so its lengths also turn the stored values into old messages.
+        for (bk, brick) in total.bricks() {
+            let old = kf.messages.brick(*bk);
+            let Some(sums) = self.sums.brick_mut(*bk) else { continue }; // traced means allocated
+            let target = messages.brick_or_insert(*bk);
+            for (slot, &(wm, w)) in brick.iter() {
+                let Some(s) = sums.get_mut(slot) else { continue };
+                let old = old.and_then(|b| b.get(slot)).map_or(0.0, |q| message_of(mode, *q, w));
+                let stored = stored_of(mode, wm, w);
+                *s += message_of(mode, stored, w) - old;
+                *target.get_or_insert(slot, 0.0) = stored;
             }
         }
-        self.keyframes[i].messages = new;
+        self.keyframes[i].messages = messages;
     }
 
-    /// Keyframe `i`'s new messages: per voxel `W_k` and `W_k` per metre of ray.
-    fn trace_keyframe(&self, i: usize) -> Grid<(f32, f32)> {
+    /// Traces keyframe `i`: per voxel the sum of its rays' contributions (see [`Aggregation`])
+    /// and the sum of their lengths; with `lengths_only`, the lengths alone (no forward model).
+    fn trace_keyframe(&self, i: usize, lengths_only: bool) -> Grid<(f32, f32)> {
         let kf = &self.keyframes[i];
         let rays = FrameRays::new(&kf.frame);
         let blocks: Vec<u32> = (0..rays.rows().div_ceil(ROWS_PER_BLOCK)).collect();
@@ -462,7 +482,7 @@ impl MrfEngine {
                     let rows = b * ROWS_PER_BLOCK..((b + 1) * ROWS_PER_BLOCK).min(rays.rows());
                     for v in rows {
                         for ray in rays.row(v) {
-                            self.trace_ray(kf, &ray, &mut scratch, &mut acc);
+                            self.trace_ray(kf, &ray, lengths_only, &mut scratch, &mut acc);
                         }
                     }
                     acc
@@ -479,25 +499,23 @@ impl MrfEngine {
                 }
             }
         }
-        let messages = self.params.messages;
-        total.map(|&(wm, w)| {
-            if w <= 0.0 {
-                return (0.0, 0.0); // only grazing crossings of zero length: no evidence
-            }
-            let msg = match messages {
-                Aggregation::Average => logit((wm as f64 / w as f64).clamp(MSG_EPS, 1.0 - MSG_EPS)) as f32,
-                Aggregation::Sum => wm,
-            };
-            (msg, msg / w)
-        })
+        total
     }
 
     /// One ray: gather the allocated voxels it crosses, their cavities and likelihoods, and
-    /// add its outgoing messages to `acc`.
-    fn trace_ray(&self, kf: &Keyframe, ray: &PixelRay, scratch: &mut RayScratch, acc: &mut Grid<(f32, f32)>) {
+    /// add its outgoing messages to `acc`; with `lengths_only`, only its lengths.
+    fn trace_ray(
+        &self,
+        kf: &Keyframe,
+        ray: &PixelRay,
+        lengths_only: bool,
+        scratch: &mut RayScratch,
+        acc: &mut Grid<(f32, f32)>,
+    ) {
         let Some(seg) = self.limits.forward_model_segment(ray, &kf.noise) else { return };
         let r = self.resolution();
         let measured = ray.range * ray.cz;
+        let mode = self.params.messages;
         scratch.clear();
         let edge = r * BRICK_EDGE as f64;
         for_each_crossing(ray.origin, ray.dir, seg.start, seg.end, edge, |b| {
@@ -511,15 +529,16 @@ impl MrfEngine {
                 } else {
                     (self.sums.get(c.key), kf.messages.get(c.key)) // rounding at a brick face
                 };
-                if let Some(s) = s {
-                    let own = match (m, self.params.messages) {
-                        (None, _) => 0.0,
-                        (Some(m), Aggregation::Average) => m.0 as f64,
-                        (Some(m), Aggregation::Sum) => m.1 as f64 * c.length(),
-                    };
-                    let cavity = sigmoid(*s as f64 - own);
-                    let nu = kf.noise.likelihood_over(ray.u, ray.v, c.s_in * ray.cz, c.s_out * ray.cz, measured);
-                    scratch.push(c.key, c.length(), cavity, nu);
+                match s {
+                    Some(_) if lengths_only => scratch.push(c.key, c.length(), 0.0, 0.0),
+                    Some(s) => {
+                        // The cavity: everything the voxel heard except this ray's own message.
+                        let own = m.map_or(0.0, |q| message_of(mode, *q, c.length() as f32));
+                        let cavity = sigmoid((*s - own) as f64);
+                        let nu = kf.noise.likelihood_over(ray.u, ray.v, c.s_in * ray.cz, c.s_out * ray.cz, measured);
+                        scratch.push(c.key, c.length(), cavity, nu);
+                    }
+                    None => {}
                 }
                 ControlFlow::Continue(())
             });
@@ -528,13 +547,15 @@ impl MrfEngine {
         if scratch.keys.is_empty() {
             return;
         }
-        let z_end = seg.end * ray.cz;
-        let beyond = if seg.hits_surface {
-            kf.noise.likelihood_over(ray.u, ray.v, z_end, z_end + r * ray.cz, measured)
-        } else {
-            0.0
-        };
-        ray_messages(&scratch.mu, &scratch.nu, beyond, &mut scratch.out);
+        if !lengths_only {
+            let z_end = seg.end * ray.cz;
+            let beyond = if seg.hits_surface {
+                kf.noise.likelihood_over(ray.u, ray.v, z_end, z_end + r * ray.cz, measured)
+            } else {
+                0.0
+            };
+            ray_messages(&scratch.mu, &scratch.nu, beyond, &mut scratch.out);
+        }
         let inv_r = 1.0 / r;
         let mut j = 0;
         while j < scratch.keys.len() {
@@ -542,16 +563,41 @@ impl MrfEngine {
             let bk = scratch.keys[j].brick();
             let brick = acc.brick_or_insert(bk);
             while j < scratch.keys.len() && scratch.keys[j].brick() == bk {
-                let (l, m) = (scratch.length[j], scratch.out[j]);
+                let l = scratch.length[j];
                 let e = brick.get_or_insert(scratch.keys[j].slot(), (0.0, 0.0));
-                e.0 += match self.params.messages {
-                    Aggregation::Average => (l * m) as f32,
-                    Aggregation::Sum => (l * inv_r * logit(m.clamp(MSG_EPS, 1.0 - MSG_EPS))) as f32,
-                };
+                if !lengths_only {
+                    let m = scratch.out[j];
+                    e.0 += match mode {
+                        Aggregation::Average => (l * m) as f32,
+                        Aggregation::Sum => (l * inv_r * logit(m.clamp(MSG_EPS, 1.0 - MSG_EPS))) as f32,
+                    };
+                }
                 e.1 += l as f32;
                 j += 1;
             }
         }
+    }
+}
+
+/// What a keyframe stores for a voxel whose trace summed `wm` (the rays' contributions) over
+/// `w` metres of ray ([`Keyframe::messages`]).
+fn stored_of(mode: Aggregation, wm: f32, w: f32) -> f32 {
+    if w <= 0.0 {
+        return 0.0; // only crossings of zero length: no evidence
+    }
+    match mode {
+        Aggregation::Average => logit((wm as f64 / w as f64).clamp(MSG_EPS, 1.0 - MSG_EPS)) as f32,
+        Aggregation::Sum => wm / w,
+    }
+}
+
+/// The message (log-odds) that `stored` stands for over `length` metres of ray: one ray's
+/// own share, or with the keyframe's total length its whole `W_k`. Under the average, a
+/// keyframe sends the same message whatever the length.
+fn message_of(mode: Aggregation, stored: f32, length: f32) -> f32 {
+    match mode {
+        Aggregation::Average => stored,
+        Aggregation::Sum => stored * length,
     }
 }
 

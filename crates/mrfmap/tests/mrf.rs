@@ -380,10 +380,11 @@ fn one_keyframe_marks_a_wall_and_unreached_voxels_stay_unknown() {
     let n = columns.len();
     eprintln!("wall columns occupied: sum {with_sum}, average {with_average}, log-odds {logodds} of {n}");
     assert!(logodds as f64 > 0.95 * n as f64);
-    // Measured: sum 1030, average 318, log-odds 1198 of 1200. The face lies on a voxel
-    // boundary (x = 2.0): where a column's few rays split their evidence between the two
-    // voxels at the face, each holds 0.2-0.45 (P(one of them) is high, each alone is not).
-    assert!(with_sum as f64 > 0.8 * n as f64, "sum: {with_sum} of {n}");
+    // Measured after 3 damped iterations: sum 876, average 318, log-odds 1198 of 1200 (1030
+    // undamped). The face lies on a voxel boundary (x = 2.0): where a column's few rays split
+    // their evidence between the two voxels at the face, each holds 0.2-0.45 (P(one of them)
+    // is high, each alone is not).
+    assert!(with_sum as f64 > 0.7 * n as f64, "sum: {with_sum} of {n}");
     assert!(with_sum > 2 * with_average, "sum {with_sum} vs average {with_average}");
     // Inside the wall: 2.2 m (x index 44, 12 std behind the face) lies in a brick the band
     // allocated, so the engine holds it, at the prior; no ray reaches it (they end 3 std past
@@ -394,4 +395,44 @@ fn one_keyframe_marks_a_wall_and_unreached_voxels_stay_unknown() {
     assert!(sum.marginal(behind).is_some_and(|p| (p - 0.1).abs() < 1e-3), "{:?}", sum.marginal(behind));
     assert_eq!(map.voxels.get(behind), None, "unreached voxel reported");
     assert!(map.voxels.len() < sum.marginals().count());
+}
+
+/// Change-driven inference (`run_until`) after adding, removing and re-posing keyframes lands
+/// where the full schedule run to convergence on the same keyframes lands, and traces fewer
+/// rays than sweeping every keyframe would.
+#[test]
+fn run_until_lands_where_the_full_schedule_lands() {
+    let s = scene(&format!("{SMALL_CAMERA}{BOX_SCENE}"));
+    let fr = frames(&s, &s.views, None);
+    let tol = 1e-4;
+    let full = |frames: &[Frame]| build_mrf(frames, 0.05, 300);
+    // Add: four keyframes converged, then the fifth.
+    let mut e = build_mrf(&fr[..4], 0.05, 0);
+    let first = e.run_until(tol, 1000);
+    assert!(first.converged && first.sweeps > 1, "{first:?}");
+    e.add_keyframe(fr[4].clone()).unwrap();
+    let add = e.run_until(tol, 1000);
+    let d_add = max_difference(&e, &full(&fr));
+    // Remove the second keyframe.
+    let ids = e.keyframe_ids();
+    e.remove_keyframe(ids[1]).unwrap();
+    let remove = e.run_until(tol, 1000);
+    let rest: Vec<Frame> = fr.iter().enumerate().filter(|(i, _)| *i != 1).map(|(_, f)| f.clone()).collect();
+    let d_remove = max_difference(&e, &full(&rest));
+    // Re-pose the last keyframe: first wrong, then right.
+    let last = *e.keyframe_ids().last().unwrap();
+    let wrong = Pose::new([0.1, 0.0, 0.0].into(), [0.0, 0.0, 0.05].into()) * fr[4].pose;
+    e.set_pose(last, wrong).unwrap();
+    e.run_until(tol, 1000);
+    e.set_pose(last, fr[4].pose).unwrap();
+    let repose = e.run_until(tol, 1000);
+    let d_repose = max_difference(&e, &full(&rest));
+    eprintln!("add {add:?} d {d_add:.2e}; remove {remove:?} d {d_remove:.2e}; re-pose {repose:?} d {d_repose:.2e}");
+    for (what, r, d) in [("add", add, d_add), ("remove", remove, d_remove), ("re-pose", repose, d_repose)] {
+        assert!(r.converged, "{what}: {r:?}");
+        assert!(d < 50.0 * tol, "{what}: largest marginal difference {d}");
+    }
+    // Fewer rays than re-tracing every keyframe in every sweep.
+    let rays_per_sweep: usize = 80 * 60 * 4;
+    assert!(remove.rays < remove.sweeps * rays_per_sweep, "{remove:?}");
 }

@@ -44,6 +44,10 @@ pub struct MapOptions {
     /// once (average, the paper's text).
     #[arg(long, default_value = "sum", value_parser = ["sum", "average"])]
     pub messages: String,
+    /// MRF: share of a keyframe's old message kept when it is replaced, in [0, 1) (damped
+    /// belief propagation; 0 is the paper's plain update).
+    #[arg(long, default_value_t = 0.3)]
+    pub damping: f64,
     /// CRM: particles per voxel pdf (memory per voxel is 4 * (particles + 1) bytes).
     #[arg(long, default_value_t = 101, value_parser = clap::value_parser!(u16).range(2..))]
     pub particles: u16,
@@ -83,6 +87,7 @@ impl MapOptions {
                 allocation,
                 keyframes: if self.keyframes == "auto" { KeyframeSelection::AUTO } else { KeyframeSelection::All },
                 messages: if self.messages == "average" { Aggregation::Average } else { Aggregation::Sum },
+                damping: self.damping,
             },
             crm: CrmParams { particles: self.particles as usize },
         })

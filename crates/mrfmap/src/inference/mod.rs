@@ -23,7 +23,10 @@ use std::str::FromStr;
 
 pub use crm::{CrmEngine, CrmParams, crm_ray_factors};
 pub use logodds::{LogOddsEngine, LogOddsParams, Marking, SensorModel};
-pub use mrf::{Aggregation, Allocation, KeyframeId, KeyframeSelection, MU_EPS, MrfEngine, MrfParams, ray_messages};
+pub use mrf::{
+    Aggregation, Allocation, DEFAULT_TOLERANCE, KeyframeId, KeyframeSelection, MU_EPS, MrfEngine, MrfParams, RunReport,
+    ray_messages,
+};
 
 use crate::error::{Error, Result};
 use crate::frames::{Frame, RangeScan};

@@ -304,6 +304,21 @@ impl Mapper {
         })
     }
 
+    /// MRF: belief propagation until no marginal moves by more than `tolerance`, re-tracing
+    /// only keyframes whose inputs changed; returns (sweeps, keyframe updates, rays, converged).
+    #[pyo3(signature = (tolerance=mrfmap::inference::DEFAULT_TOLERANCE, max_sweeps=100))]
+    fn run_until(&self, py: Python<'_>, tolerance: f64, max_sweeps: usize) -> PyResult<(usize, usize, usize, bool)> {
+        if !(tolerance > 0.0 && tolerance < 1.0) {
+            return Err(PyValueError::new_err(format!("tolerance must be in (0, 1), got {tolerance}")));
+        }
+        py.detach(|| {
+            self.mrf_only("run_until", |e| {
+                let r = e.run_until(tolerance, max_sweeps);
+                Ok((r.sweeps, r.keyframe_updates, r.rays, r.converged))
+            })
+        })
+    }
+
     /// The current map.
     fn map(&self, py: Python<'_>) -> PyMap {
         PyMap { map: py.detach(|| self.lock().engine().map()) }

@@ -69,6 +69,10 @@ class Mapper:
         """MRF only: moves a keyframe to a corrected pose (after a loop closure)."""
     def run(self, iterations: int = 3) -> None:
         """MRF: belief-propagation iterations over all keyframes. Other engines: nothing."""
+    def run_until(self, tolerance: float = 1e-3, max_sweeps: int = 100) -> Tuple[int, int, int, bool]:
+        """MRF only: belief propagation until no marginal moves by more than ``tolerance`` in
+        one keyframe update, re-tracing only the keyframes whose voxels changed since their last
+        trace. Returns ``(sweeps, keyframe_updates, rays_traced, converged)``."""
     def map(self) -> Map:
         """The current map (a snapshot)."""
     def query(

@@ -540,6 +540,25 @@ fn mrf_message_modes_reference_metric_and_bad_values_and_plain_errors() {
     let o = run(&["eval", s(&dir.join("sum.mrfmap")), s(&data), "--metric", "exit"]);
     assert!(!o.status.success() && stderr(&o).contains("reference"), "{}", stderr(&o));
     build_fails(&data, &["--engine", "mrf", "--iterations", "0"], &["iterations"]);
+    build_fails(&data, &["--engine", "mrf", "--tolerance", "0"], &["tolerance"]);
+    let until = dir.join("until.mrfmap");
+    let o = run(&[
+        "build",
+        s(&data),
+        "-o",
+        s(&until),
+        "--resolution",
+        "0.05",
+        "--engine",
+        "mrf",
+        "--tolerance",
+        "0.01",
+        "--iterations",
+        "20",
+    ]);
+    assert!(o.status.success() && stderr(&o).contains("sweeps"), "{}", stderr(&o));
+    let until = mrfmap::map::Map::load(&until).unwrap();
+    assert_eq!(until.params.get("tolerance").map(String::as_str), Some("0.01"));
     // A missing output folder is refused before any work, and the OS message is said once.
     let o = run(&["build", s(&data), "-o", s(&dir.join("no/such/m.mrfmap")), "--resolution", "0.05"]);
     assert!(!o.status.success() && stderr(&o).contains("output folder"), "{}", stderr(&o));

@@ -48,6 +48,11 @@ pub struct MapOptions {
     /// belief propagation; 0 is the paper's plain update).
     #[arg(long, default_value_t = 0.3)]
     pub damping: f64,
+    /// MRF: sweep until no marginal moves by more than this in one keyframe update, re-tracing
+    /// only keyframes whose voxels changed, at most --iterations sweeps (default: exactly
+    /// --iterations full sweeps). A log line says the sweeps and rays it traced.
+    #[arg(long)]
+    pub tolerance: Option<f64>,
     /// CRM: particles per voxel pdf (memory per voxel is 4 * (particles + 1) bytes).
     #[arg(long, default_value_t = 101, value_parser = clap::value_parser!(u16).range(2..))]
     pub particles: u16,
@@ -88,6 +93,7 @@ impl MapOptions {
                 keyframes: if self.keyframes == "auto" { KeyframeSelection::AUTO } else { KeyframeSelection::All },
                 messages: if self.messages == "average" { Aggregation::Average } else { Aggregation::Sum },
                 damping: self.damping,
+                tolerance: self.tolerance,
             },
             crm: CrmParams { particles: self.particles as usize },
         })

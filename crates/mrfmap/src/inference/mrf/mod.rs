@@ -111,6 +111,9 @@ pub struct MrfParams {
     /// test scenes alternates between 0.95 and 0.89 forever); 0.3 removes it there and scores
     /// better on held-out views (RESULTS.md).
     pub damping: f64,
+    /// With `Some(t)`, [`Engine::finish`] runs [`MrfEngine::run_until`] with tolerance `t`
+    /// and at most `iterations` sweeps instead of `iterations` full sweeps.
+    pub tolerance: Option<f64>,
 }
 
 /// How the messages of one keyframe's rays into a voxel combine (MRFMap sec. IV-A; see the
@@ -146,6 +149,7 @@ impl Default for MrfParams {
             keyframes: KeyframeSelection::All,
             messages: Aggregation::Sum,
             damping: 0.3,
+            tolerance: None,
         }
     }
 }
@@ -237,6 +241,9 @@ impl MrfEngine {
     pub fn new(resolution: f64, limits: RayLimits, params: MrfParams) -> Result<Self> {
         if !(params.prior > 0.0 && params.prior < 1.0) {
             return Err(Error::Invalid(format!("MRF prior must be in (0, 1), got {}", params.prior)));
+        }
+        if params.tolerance.is_some_and(|t| !(t > 0.0 && t < 1.0)) {
+            return Err(Error::Invalid(format!("MRF tolerance must be in (0, 1), got {:?}", params.tolerance)));
         }
         if !(0.0..1.0).contains(&params.damping) {
             return Err(Error::Invalid(format!("MRF damping must be in [0, 1), got {}", params.damping)));
@@ -781,7 +788,19 @@ impl Engine for MrfEngine {
     }
 
     fn finish_with_progress(&mut self, progress: &mut dyn FnMut(usize, usize)) -> Result<()> {
-        self.run_with_progress(self.params.iterations, progress);
+        match self.params.tolerance {
+            Some(t) => {
+                let r = self.run_until(t, self.params.iterations);
+                tracing::info!(
+                    "MRF: {} sweeps, {} keyframe updates, {} rays traced, {}",
+                    r.sweeps,
+                    r.keyframe_updates,
+                    r.rays,
+                    if r.converged { "converged" } else { "not converged (sweep cap)" }
+                );
+            }
+            None => self.run_with_progress(self.params.iterations, progress),
+        }
         Ok(())
     }
 
@@ -798,6 +817,10 @@ impl Engine for MrfEngine {
         map.params.insert("iterations".into(), p.iterations.to_string());
         map.params.insert("allocation".into(), format!("{:?}", p.allocation).to_lowercase());
         map.params.insert("messages".into(), format!("{:?}", p.messages).to_lowercase());
+        map.params.insert("damping".into(), p.damping.to_string());
+        if let Some(t) = p.tolerance {
+            map.params.insert("tolerance".into(), t.to_string());
+        }
         map.params.insert("keyframes".into(), self.keyframes.len().to_string());
         if let KeyframeSelection::Auto { translation, rotation } = p.keyframes {
             map.params.insert("keyframe_selection".into(), format!("auto ({translation} m, {rotation} rad)"));

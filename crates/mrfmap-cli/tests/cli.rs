@@ -541,6 +541,7 @@ fn mrf_message_modes_reference_metric_and_bad_values_and_plain_errors() {
     assert!(!o.status.success() && stderr(&o).contains("reference"), "{}", stderr(&o));
     build_fails(&data, &["--engine", "mrf", "--iterations", "0"], &["iterations"]);
     build_fails(&data, &["--engine", "mrf", "--tolerance", "0"], &["tolerance"]);
+    build_fails(&data, &["--engine", "mrf", "--damping", "1"], &["damping", "[0, 1)"]);
     let until = dir.join("until.mrfmap");
     let o = run(&[
         "build",

@@ -170,10 +170,8 @@ struct Keyframe {
     /// Under [`Aggregation::Average`]: `W_k` itself. One value per voxel, as for the paper's
     /// average.
     messages: Grid<f32>,
-    /// The [`MrfEngine::epoch`] of its last trace (`None`: not traced since added or moved).
+    /// The `MrfEngine::epoch` of its last trace (`None`: not traced since added or moved).
     traced_at: Option<u64>,
-    /// Pixels with a depth: the rays one trace walks.
-    rays: usize,
 }
 
 /// Messages are kept away from 0 and 1 so that their log-odds stay finite.
@@ -282,18 +280,8 @@ impl MrfEngine {
         noise.check_camera(&frame.camera).map_err(Error::Invalid)?;
         let id = KeyframeId(self.next_id);
         self.next_id += 1;
-        let rays = (0..frame.depth.height())
-            .map(|v| (0..frame.depth.width()).filter(|&u| frame.depth.get(u, v).is_some()).count())
-            .sum();
-        let mut kf = Keyframe {
-            id,
-            frame,
-            noise,
-            bricks: Vec::new(),
-            messages: Grid::new(self.resolution())?,
-            traced_at: None,
-            rays,
-        };
+        let mut kf =
+            Keyframe { id, frame, noise, bricks: Vec::new(), messages: Grid::new(self.resolution())?, traced_at: None };
         kf.bricks = self.allocation_of(&kf);
         self.reference_bricks(&kf.bricks);
         self.changed.extend(kf.bricks.iter().copied());
@@ -353,7 +341,7 @@ impl MrfEngine {
                 if stale {
                     self.update_keyframe(i);
                     updated += 1;
-                    report.rays += self.keyframes[i].rays;
+                    report.rays += self.keyframes[i].frame.depth.valid_count();
                 }
             }
             report.sweeps += 1;

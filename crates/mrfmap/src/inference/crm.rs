@@ -502,6 +502,14 @@ impl Engine for CrmEngine {
         Ok(())
     }
 
+    fn voxel(&self, key: VoxelKey) -> Option<MapVoxel> {
+        self.mean_variance(key).map(map_voxel)
+    }
+
+    fn has_variance(&self) -> bool {
+        true
+    }
+
     fn map(&self) -> Map {
         let mut map = Map::new(self.name(), self.resolution).expect("valid resolution");
         map.has_variance = true;
@@ -509,14 +517,18 @@ impl Engine for CrmEngine {
         for (bk, b) in &self.bricks {
             for slot in 0..BRICK_VOXELS {
                 if let Some(i) = b.index(slot) {
-                    let (mean, variance) = self.moments(&b.pdfs[i * k..(i + 1) * k]);
-                    map.voxels.insert(bk.voxel(slot), MapVoxel { occupancy: mean as f32, variance: variance as f32 });
+                    map.voxels.insert(bk.voxel(slot), map_voxel(self.moments(&b.pdfs[i * k..(i + 1) * k])));
                 }
             }
         }
         map.params.insert("particles".into(), k.to_string());
         map
     }
+}
+
+/// A map voxel of a voxel's occupancy mean and variance.
+fn map_voxel((mean, variance): (f64, f64)) -> MapVoxel {
+    MapVoxel { occupancy: mean as f32, variance: variance as f32 }
 }
 
 #[cfg(test)]

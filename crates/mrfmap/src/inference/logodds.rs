@@ -272,9 +272,13 @@ impl Engine for LogOddsEngine {
         Ok(())
     }
 
+    fn voxel(&self, key: VoxelKey) -> Option<MapVoxel> {
+        self.grid.get(key).map(|l| map_voxel(*l))
+    }
+
     fn map(&self) -> Map {
         let mut map = Map::new(self.name(), self.grid.resolution()).expect("valid resolution");
-        map.voxels = self.grid.map(|l| MapVoxel { occupancy: sigmoid(*l as f64) as f32, variance: 0.0 });
+        map.voxels = self.grid.map(|l| map_voxel(*l));
         let p = self.params;
         let mut params = vec![("clamp_min", p.clamp_min), ("clamp_max", p.clamp_max)];
         match p.model {
@@ -289,6 +293,11 @@ impl Engine for LogOddsEngine {
         }
         map
     }
+}
+
+/// A map voxel of a stored log-odds value.
+fn map_voxel(l: f32) -> MapVoxel {
+    MapVoxel { occupancy: sigmoid(l as f64) as f32, variance: 0.0 }
 }
 
 /// Free and occupied voxels of one brick in one scan.

@@ -30,7 +30,7 @@ pub use mrf::{
 
 use crate::error::{Error, Result};
 use crate::frames::{Frame, RangeScan};
-use crate::map::Map;
+use crate::map::{Map, MapVoxel, VoxelKey};
 use crate::rays::RayLimits;
 
 /// Log-odds of a probability.
@@ -44,7 +44,7 @@ pub(crate) fn sigmoid(l: f64) -> f64 {
 }
 
 /// An occupancy inference engine.
-pub trait Engine: Send {
+pub trait Engine: Send + Sync {
     /// Short name stored in map files (`logodds`, ...).
     fn name(&self) -> &'static str;
     /// Voxel edge in metres.
@@ -73,6 +73,14 @@ pub trait Engine: Send {
     }
     /// The current map: occupancy (and variance where the engine has one) per voxel.
     fn map(&self) -> Map;
+    /// One voxel of [`Engine::map`], read from the live state without building the map
+    /// (what queries on a running engine use); `None` where the map would have no voxel.
+    fn voxel(&self, key: VoxelKey) -> Option<MapVoxel>;
+    /// True when [`MapVoxel::variance`] is the engine's own (CRM); otherwise queries use the
+    /// Bernoulli variance of the occupancy.
+    fn has_variance(&self) -> bool {
+        false
+    }
 }
 
 /// The engines this build offers.

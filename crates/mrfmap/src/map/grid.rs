@@ -212,6 +212,13 @@ impl<V: Copy + Default> Brick<V> {
         self.mask.iter().all(|w| *w == 0)
     }
 
+    /// Frees `slot` (unknown again); true if it was allocated.
+    pub fn remove(&mut self, slot: usize) -> bool {
+        let had = mask_has(&self.mask, slot);
+        self.mask[slot >> 6] &= !(1 << (slot & 63));
+        had
+    }
+
     /// Mutable value at `slot` if allocated.
     #[inline]
     pub fn get_mut(&mut self, slot: usize) -> Option<&mut V> {
@@ -270,6 +277,18 @@ impl<V: Copy + Default> Grid<V> {
         let brick = self.bricks.get_mut(&key.brick())?;
         let slot = key.slot();
         mask_has(&brick.mask, slot).then(|| &mut brick.values[slot])
+    }
+
+    /// Frees a voxel (unknown again), dropping its brick when it was the last; true if it
+    /// was allocated.
+    pub fn remove(&mut self, key: VoxelKey) -> bool {
+        let bk = key.brick();
+        let Some(brick) = self.bricks.get_mut(&bk) else { return false };
+        let had = brick.remove(key.slot());
+        if brick.is_empty() {
+            self.bricks.remove(&bk);
+        }
+        had
     }
 
     /// Drops whole bricks (absent ones are ignored).

@@ -3,14 +3,18 @@
 //!
 //! Engines keep whatever per-voxel state they need in their own `Grid`; when asked they
 //! produce a `Map` of occupancy probabilities (and variances where the engine has them).
+//! Maps can be cropped, cleared, merged, compared and projected to 2D (`ops`).
 
 mod file;
 mod grid;
+mod ops;
 
 pub use grid::{
     BRICK_EDGE, BRICK_VOXELS, Brick, BrickKey, BrickList, Grid, SlotMask, VoxelKey, check_resolution, floor_i32,
     mask_has, mask_set, mask_slots,
 };
+
+pub use ops::{Change, Grid2d, MAX_GRID2D_CELLS, VoxelState};
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -22,6 +26,17 @@ pub struct MapVoxel {
     pub occupancy: f32,
     /// Variance of the occupancy estimate (0 when the engine has none).
     pub variance: f32,
+}
+
+impl MapVoxel {
+    /// Mean occupancy and its standard deviation: the engine's variance where it has one
+    /// (CRM), otherwise the Bernoulli variance `p (1 - p)` of the occupancy probability.
+    #[inline]
+    pub fn mean_sigma(&self, has_variance: bool) -> (f64, f64) {
+        let m = self.occupancy as f64;
+        let var = if has_variance { self.variance as f64 } else { m * (1.0 - m) };
+        (m, var.max(0.0).sqrt())
+    }
 }
 
 /// Probability above which a voxel counts as occupied (OctoMap's default).

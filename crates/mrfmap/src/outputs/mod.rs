@@ -1,7 +1,10 @@
 //! Outputs: what leaves the library — exported files, evaluation and pictures.
 //!
 //! - [`write_ply`] / [`read_ply`]: voxel centres with occupancy (and variance) as PLY;
+//! - [`write_map_server`] / [`read_map_server`]: 2D occupancy grids as ROS `map_server` PGM + YAML;
 //! - [`write_octomap`] / [`read_octomap`]: OctoMap `.bt` and `.ot` files;
+//! - [`query_point`], [`query_segment`], [`query_box`]: what a planner asks (occupancy with
+//!   its sigma, the probability that a path or box is free, with a confidence bound);
 //! - [`Scorer`] (and the shorthand [`score_view`]): the MRFMap accuracy metric on held-out views;
 //! - [`truth_metrics`]: MAE, ROC AUC, inconsistency and sigma-error correlation against an
 //!   analytic scene;
@@ -12,9 +15,11 @@
 
 mod accuracy;
 mod canvas;
+mod grid2d;
 mod octomap;
 pub mod pictures;
 mod ply;
+mod query;
 mod render;
 mod truth;
 
@@ -22,8 +27,13 @@ pub use accuracy::{
     AccuracyParams, PeakRule, PixelClass, ProfileStep, RayVerdict, Scorer, VISIBILITY_FLOOR, ViewScore, score_view,
 };
 pub use canvas::{Canvas, PlotArea, Rgb, nice_step};
+pub use grid2d::{FREE_THRESH, Grid2dFiles, MapServerGrid, OCCUPIED_THRESH, read_map_server, write_map_server};
 pub use octomap::{OctomapFormat, OctomapLeaf, OctomapSummary, OctomapTree, TREE_DEPTH, read_octomap, write_octomap};
 pub use ply::{PlyOptions, PlyVertices, read_ply, write_ply};
+pub use query::{
+    BoxAnswer, LiveEngine, MAX_BOX_VOXELS, PointAnswer, QueryOptions, SegmentAnswer, VoxelSource, box_keys,
+    box_voxel_count, for_each_in_box, query_box, query_point, query_points, query_segment, query_segments,
+};
 pub use render::{Colouring, View, render_map, slice_map};
 pub use truth::{
     TruthMetrics, VoxelTruth, grid_world_truths, mean_sigma, metrics_of, pearson, roc_auc, true_occupancy,

@@ -69,9 +69,7 @@ pub fn true_occupancy(scene: &Scene, key: VoxelKey, r: f64) -> f64 {
 
 /// Mean and standard deviation the metrics use for a map voxel.
 pub fn mean_sigma(map: &Map, v: &MapVoxel) -> (f64, f64) {
-    let m = v.occupancy as f64;
-    let var = if map.has_variance { v.variance as f64 } else { m * (1.0 - m) };
-    (m, var.max(0.0).sqrt())
+    v.mean_sigma(map.has_variance)
 }
 
 /// Per-voxel truth, mean and sigma for every allocated voxel of `map` (in parallel).

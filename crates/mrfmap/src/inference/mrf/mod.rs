@@ -235,6 +235,13 @@ pub struct RunReport {
 }
 
 impl MrfEngine {
+    /// The map voxel of a marginal's log-odds sum `S`: none where no ray reached the voxel
+    /// (`S` within [`UNOBSERVED`] of the prior), so unreached space stays unknown.
+    fn map_voxel(&self, s: f32) -> Option<MapVoxel> {
+        ((s as f64 - logit(self.params.prior)).abs() > UNOBSERVED)
+            .then(|| MapVoxel { occupancy: sigmoid(s as f64) as f32, variance: 0.0 })
+    }
+
     /// An empty engine.
     pub fn new(resolution: f64, limits: RayLimits, params: MrfParams) -> Result<Self> {
         if !(params.prior > 0.0 && params.prior < 1.0) {
@@ -792,12 +799,15 @@ impl Engine for MrfEngine {
         Ok(())
     }
 
+    fn voxel(&self, key: VoxelKey) -> Option<MapVoxel> {
+        self.map_voxel(*self.sums.get(key)?)
+    }
+
     fn map(&self) -> Map {
         let mut map = Map::new(self.name(), self.resolution()).expect("valid resolution");
-        let prior = logit(self.params.prior);
         for (key, s) in self.sums.iter() {
-            if (*s as f64 - prior).abs() > UNOBSERVED {
-                map.voxels.insert(key, MapVoxel { occupancy: sigmoid(*s as f64) as f32, variance: 0.0 });
+            if let Some(v) = self.map_voxel(*s) {
+                map.voxels.insert(key, v);
             }
         }
         let p = self.params;

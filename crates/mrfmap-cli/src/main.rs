@@ -35,6 +35,18 @@ enum Command {
     View(commands::view::Args),
     /// Describe a map file.
     Info(commands::info::Args),
+    /// Ask a map what a planner asks: occupancy at points, is a path or a box free (`--json`).
+    Query(commands::query::Args),
+    /// Keep only the voxels in a box.
+    Crop(commands::ops::BoxArgs),
+    /// Make the voxels in a box unknown.
+    Clear(commands::ops::BoxArgs),
+    /// Combine two maps of one engine and resolution.
+    Merge(commands::ops::MergeArgs),
+    /// Voxels whose state (unknown, free, occupied) differs between two maps.
+    Diff(commands::ops::DiffArgs),
+    /// The 2D occupancy grid of a height slab (ROS map_server PGM + YAML).
+    Project(commands::ops::ProjectArgs),
     /// Render an analytic scene file to a dataset.
     Simulate(commands::simulate::Args),
     /// Simulate the bundled room scene, build maps with every engine, export PLY.
@@ -72,6 +84,12 @@ fn main() {
             Command::Export(a) => commands::export::run(a),
             Command::View(a) => commands::view::run(a),
             Command::Info(a) => commands::info::run(a),
+            Command::Query(a) => commands::query::run(a),
+            Command::Crop(a) => commands::ops::crop(a),
+            Command::Clear(a) => commands::ops::clear(a),
+            Command::Merge(a) => commands::ops::merge(a),
+            Command::Diff(a) => commands::ops::diff(a),
+            Command::Project(a) => commands::ops::project(a),
             Command::Simulate(a) => commands::simulate::run(a),
             Command::Demo(a) => commands::demo::run(a),
             Command::Eval(a) => commands::eval::run(a),

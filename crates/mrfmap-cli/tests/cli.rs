@@ -567,3 +567,90 @@ fn mrf_message_modes_reference_metric_and_bad_values_and_plain_errors() {
     assert!(!o.status.success() && stderr(&o).matches("os error").count() == 1, "{}", stderr(&o));
     build_fails(&data, &["--engine", "mrf", "--messages", "mean"], &["mean", "average"]);
 }
+
+#[test]
+fn query_json_contract_and_map_operations() {
+    use mrfmap::map::Map;
+    use mrfmap::outputs::{QueryOptions, query_box, query_point, query_segment};
+    let dir = workdir("query");
+    let map_path = logodds_map(&dir);
+    let map = Map::load(&map_path).unwrap();
+    let csv = dir.join("points.csv");
+    std::fs::write(&csv, "x,y,z\n# the box's face, then free space\n-0.31,0.02,0.3\n\n-0.6,0.02,0.3\n").unwrap();
+    let o = run(&[
+        "query",
+        s(&map_path),
+        "--segment",
+        "-1.5,0.02,0.3:1.5,0.02,0.3",
+        "--segment=-1.5,-1.5,1.5:-1.4,-1.5,1.5",
+        "--points",
+        s(&csv),
+        "--box=-0.2,-0.2,0.1,0.2,0.2,0.5",
+        "--unknown",
+        "0.3",
+        "--k",
+        "1",
+        "--json",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let v: serde_json::Value = serde_json::from_str(&stdout(&o)).expect("one JSON object");
+    let opts = QueryOptions { unknown: 0.3, k: 1.0, ..Default::default() };
+    let segs = v["segments"].as_array().unwrap();
+    assert_eq!(segs.len(), 2);
+    let through = query_segment(&map, [-1.5, 0.02, 0.3], [1.5, 0.02, 0.3], &opts);
+    assert_eq!(segs[0]["p_free"].as_f64().unwrap(), through.p_free);
+    assert_eq!(segs[0]["p_free_lcb"].as_f64().unwrap(), through.p_free_lcb);
+    assert_eq!(segs[0]["expected_occupied"].as_f64().unwrap(), through.expected_occupied);
+    let hit: Vec<f64> = segs[0]["first_hit"].as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect();
+    assert!(hit[0] < -0.25 && hit[0] > -0.4, "the path through the box hits its -x face first: {hit:?}");
+    assert!(through.p_free < 0.01);
+    // Above the scene: nothing known, so the prior answers and nothing is hit.
+    assert!(segs[1]["first_hit"].is_null() && segs[1]["unknown"] == segs[1]["voxels"]);
+    let points = v["points"].as_array().unwrap();
+    assert_eq!(points.len(), 2, "header, comment and blank lines skipped");
+    let face = query_point(&map, [-0.31, 0.02, 0.3], &opts);
+    assert_eq!(points[0]["occupancy"].as_f64().unwrap(), face.occupancy);
+    assert_eq!(points[0]["known"], true);
+    let boxes = v["boxes"].as_array().unwrap();
+    let region = mrfmap::rays::Aabb::parse("-0.2,-0.2,0.1,0.2,0.2,0.5").unwrap();
+    let b = query_box(&map, &region, &opts).unwrap();
+    assert_eq!(boxes[0]["unknown"].as_u64().unwrap(), b.unknown);
+    assert_eq!(boxes[0]["occupied"].as_u64().unwrap(), b.occupied);
+
+    // Bad input names what is wrong.
+    std::fs::write(&csv, "1,2,3\n4,five,6\n").unwrap();
+    let o = run(&["query", s(&map_path), "--points", s(&csv)]);
+    assert!(!o.status.success() && stderr(&o).contains("points.csv:2"), "{}", stderr(&o));
+    let o = run(&["query", s(&map_path), "--segment", "1,2:3,4,5"]);
+    assert!(!o.status.success() && stderr(&o).contains("X,Y,Z:X,Y,Z"), "{}", stderr(&o));
+    let o = run(&["query", s(&map_path), "--segment", "0,0,0:1,1,1", "--unknown", "2"]);
+    assert!(!o.status.success() && stderr(&o).contains("[0, 1]"), "{}", stderr(&o));
+
+    // Crop and clear split the map; merging the halves gives it back; diff sees the cleared box.
+    let (inner, outer, merged) = (dir.join("in.mrfmap"), dir.join("out.mrfmap"), dir.join("merged.mrfmap"));
+    let region = "--box=-0.5,-0.5,0,0.5,0.5,1";
+    assert!(run(&["crop", s(&map_path), region, "-o", s(&inner)]).status.success());
+    assert!(run(&["clear", s(&map_path), region, "-o", s(&outer)]).status.success());
+    let o = run(&["merge", s(&inner), s(&outer), "-o", s(&merged)]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let back = Map::load(&merged).unwrap();
+    assert_eq!(back.voxels.len(), map.voxels.len());
+    assert!(map.voxels.iter().all(|(k, v)| back.voxels.get(k) == Some(v)));
+    let changed = dir.join("changed.ply");
+    let o = run(&["diff", s(&outer), s(&map_path), "-o", s(&changed)]);
+    assert!(o.status.success() && stdout(&o).contains("unknown -> occupied"), "{}", stdout(&o));
+    let inner_map = Map::load(&inner).unwrap();
+    assert_eq!(mrfmap::outputs::read_ply(&changed).unwrap().rows.len(), inner_map.voxels.len());
+
+    // The floor-to-head slab as a map_server grid: occupied where the box stands.
+    let yaml = dir.join("grid.yaml");
+    let o = run(&["project", s(&map_path), "--z-min", "0.1", "--z-max", "0.5", "-o", s(&yaml)]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let g = mrfmap::outputs::read_map_server(&yaml).unwrap();
+    let cell = |x: f64, y: f64| {
+        let (i, j) = (((x - g.origin[0]) / g.resolution) as usize, ((y - g.origin[1]) / g.resolution) as usize);
+        g.cells[j * g.width + i]
+    };
+    assert_eq!(cell(-0.29, 0.02), Some(true), "the box");
+    assert_eq!(cell(-1.0, 0.02), Some(false), "free space in front of it");
+}

@@ -1,4 +1,5 @@
-//! One module per subcommand.
+//! One module per subcommand; the small map operations (crop, clear, merge, diff, project)
+//! share `ops`.
 
 pub mod bench;
 pub mod build;
@@ -11,6 +12,8 @@ pub mod export;
 pub mod info;
 pub mod loo;
 pub mod noise;
+pub mod ops;
+pub mod query;
 pub mod scaling;
 pub mod simulate;
 pub mod view;

@@ -10,13 +10,17 @@ use std::sync::{Arc, Mutex};
 
 use mrfmap::frames::{Beam, Camera, DepthImage, Frame, NoiseModel, Pose, RangeScan};
 use mrfmap::inference::{CrmParams, Engine, EngineConfig, EngineKind, KeyframeId, MrfEngine, MrfParams, new_engine};
-use mrfmap::map::{Map, VoxelKey};
-use mrfmap::outputs::{OctomapFormat, PlyOptions, write_octomap, write_ply};
-use mrfmap::rays::RayLimits;
+use mrfmap::map::Map;
+use mrfmap::outputs::{
+    LiveEngine, OctomapFormat, PlyOptions, PointAnswer, QueryOptions, VoxelSource, query_box, query_points,
+    query_segments, write_octomap, write_ply,
+};
+use mrfmap::rays::{Aabb, RayLimits};
 use nalgebra::{Matrix3, Rotation3, Translation3, UnitQuaternion};
 use numpy::{PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2};
 use pyo3::exceptions::{PyOSError, PyValueError};
 use pyo3::prelude::*;
+use pyo3::types::PyDict;
 
 /// Occupancy and variance per queried point.
 type Queried<'py> = PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>)>;
@@ -74,16 +78,16 @@ fn pose_of(obj: &Bound<'_, PyAny>, what: &str) -> PyResult<Pose> {
     Ok(Pose::from_parts(Translation3::new(m[3], m[7], m[11]), q))
 }
 
-/// Points as an (N, 3) array of finite values.
-fn points_of(obj: &Bound<'_, PyAny>) -> PyResult<Vec<[f64; 3]>> {
+/// Points as an (N, 3) array of finite values; `what` names the argument in errors.
+fn points_of(obj: &Bound<'_, PyAny>, what: &str) -> PyResult<Vec<[f64; 3]>> {
     let Some((n, 3, v)) = floats_2d(obj) else {
         return Err(PyValueError::new_err(format!(
-            "points: need an (N, 3) float64 or float32 array, got {}",
+            "{what}: need an (N, 3) float64 or float32 array, got {}",
             describe(obj)
         )));
     };
     if v.iter().any(|x| !x.is_finite()) {
-        return Err(PyValueError::new_err("points: contains NaN or infinity"));
+        return Err(PyValueError::new_err(format!("{what}: contains NaN or infinity")));
     }
     Ok((0..n).map(|i| [v[3 * i], v[3 * i + 1], v[3 * i + 2]]).collect())
 }
@@ -324,9 +328,48 @@ impl Mapper {
         PyMap { map: py.detach(|| self.lock().engine().map()) }
     }
 
-    /// Occupancy and variance at points: `map().query(points)`.
+    /// Occupancy and variance at points, read from the live engine.
     fn query<'py>(&self, py: Python<'py>, points: &Bound<'py, PyAny>) -> Queried<'py> {
-        self.map(py).query(py, points)
+        occupancy_variance(py, &LiveEngine(self.lock().engine()), points)
+    }
+
+    /// `Map.query_points` on the live engine (no copy of the map).
+    #[pyo3(signature = (points, unknown=0.5))]
+    fn query_points<'py>(
+        &self,
+        py: Python<'py>,
+        points: &Bound<'py, PyAny>,
+        unknown: f64,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        answer_points(py, &LiveEngine(self.lock().engine()), points, unknown)
+    }
+
+    /// `Map.query_segments` on the live engine (no copy of the map).
+    #[pyo3(signature = (starts, ends, unknown=0.5, k=2.0, threshold=0.5))]
+    fn query_segments<'py>(
+        &self,
+        py: Python<'py>,
+        starts: &Bound<'py, PyAny>,
+        ends: &Bound<'py, PyAny>,
+        unknown: f64,
+        k: f64,
+        threshold: f64,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        answer_segments(py, &LiveEngine(self.lock().engine()), starts, ends, QueryOptions { unknown, k, threshold })
+    }
+
+    /// `Map.query_boxes` on the live engine (no copy of the map).
+    #[pyo3(signature = (mins, maxs, unknown=0.5, threshold=0.5))]
+    fn query_boxes<'py>(
+        &self,
+        py: Python<'py>,
+        mins: &Bound<'py, PyAny>,
+        maxs: &Bound<'py, PyAny>,
+        unknown: f64,
+        threshold: f64,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        let opts = QueryOptions { unknown, threshold, ..Default::default() };
+        answer_boxes(py, &LiveEngine(self.lock().engine()), mins, maxs, opts)
     }
 
     /// The engine's name.
@@ -357,23 +400,45 @@ struct PyMap {
 impl PyMap {
     /// Occupancy and variance at each point; NaN where the map knows nothing.
     fn query<'py>(&self, py: Python<'py>, points: &Bound<'py, PyAny>) -> Queried<'py> {
-        let pts = points_of(points)?;
-        let r = self.map.resolution();
-        let (mut occ, mut var) = (Vec::with_capacity(pts.len()), Vec::with_capacity(pts.len()));
-        for p in pts {
-            match self.map.voxels.get(VoxelKey::from_point(p, r)) {
-                Some(v) => {
-                    let (_, sigma) = mrfmap::outputs::mean_sigma(&self.map, v);
-                    occ.push(v.occupancy as f64);
-                    var.push(sigma * sigma);
-                }
-                None => {
-                    occ.push(f64::NAN);
-                    var.push(f64::NAN);
-                }
-            }
-        }
-        Ok((PyArray1::from_vec(py, occ), PyArray1::from_vec(py, var)))
+        occupancy_variance(py, &self.map, points)
+    }
+
+    /// Occupancy, standard deviation and known per point.
+    #[pyo3(signature = (points, unknown=0.5))]
+    fn query_points<'py>(
+        &self,
+        py: Python<'py>,
+        points: &Bound<'py, PyAny>,
+        unknown: f64,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        answer_points(py, &self.map, points, unknown)
+    }
+
+    /// Free-path probabilities and more per segment.
+    #[pyo3(signature = (starts, ends, unknown=0.5, k=2.0, threshold=0.5))]
+    fn query_segments<'py>(
+        &self,
+        py: Python<'py>,
+        starts: &Bound<'py, PyAny>,
+        ends: &Bound<'py, PyAny>,
+        unknown: f64,
+        k: f64,
+        threshold: f64,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        answer_segments(py, &self.map, starts, ends, QueryOptions { unknown, k, threshold })
+    }
+
+    /// Max occupancy, free probability and counts per box.
+    #[pyo3(signature = (mins, maxs, unknown=0.5, threshold=0.5))]
+    fn query_boxes<'py>(
+        &self,
+        py: Python<'py>,
+        mins: &Bound<'py, PyAny>,
+        maxs: &Bound<'py, PyAny>,
+        unknown: f64,
+        threshold: f64,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        answer_boxes(py, &self.map, mins, maxs, QueryOptions { unknown, threshold, ..Default::default() })
     }
 
     /// All voxels: centres (N, 3), occupancy (N,) and variance (N,).
@@ -448,6 +513,98 @@ impl PyMap {
             self.map.occupied_count()
         )
     }
+}
+
+/// The legacy `query`: occupancy and variance, NaN where unknown.
+fn occupancy_variance<'py>(py: Python<'py>, source: &impl VoxelSource, points: &Bound<'py, PyAny>) -> Queried<'py> {
+    let pts = points_of(points, "points")?;
+    let answers = py.detach(|| query_points(source, &pts, &QueryOptions::default()));
+    let known = |a: &PointAnswer, v: f64| if a.known { v } else { f64::NAN };
+    let occ = answers.iter().map(|a| known(a, a.occupancy)).collect();
+    let var = answers.iter().map(|a| known(a, a.sigma * a.sigma)).collect();
+    Ok((PyArray1::from_vec(py, occ), PyArray1::from_vec(py, var)))
+}
+
+fn checked(options: QueryOptions) -> PyResult<QueryOptions> {
+    options.validate().map_err(py_err)?;
+    Ok(options)
+}
+
+fn answer_points<'py>(
+    py: Python<'py>,
+    source: &impl VoxelSource,
+    points: &Bound<'py, PyAny>,
+    unknown: f64,
+) -> PyResult<Bound<'py, PyDict>> {
+    let options = checked(QueryOptions { unknown, ..Default::default() })?;
+    let pts = points_of(points, "points")?;
+    let answers = py.detach(|| query_points(source, &pts, &options));
+    let out = PyDict::new(py);
+    out.set_item("occupancy", PyArray1::from_iter(py, answers.iter().map(|a| a.occupancy)))?;
+    out.set_item("std", PyArray1::from_iter(py, answers.iter().map(|a| a.sigma)))?;
+    out.set_item("known", PyArray1::from_iter(py, answers.iter().map(|a| a.known)))?;
+    Ok(out)
+}
+
+/// Pairs of (N, 3) arrays of one length.
+fn pairs_of(a: &Bound<'_, PyAny>, b: &Bound<'_, PyAny>, names: [&str; 2]) -> PyResult<Vec<([f64; 3], [f64; 3])>> {
+    let (a, b) = (points_of(a, names[0])?, points_of(b, names[1])?);
+    if a.len() != b.len() {
+        return Err(PyValueError::new_err(format!(
+            "{} and {} need the same number of rows, got {} and {}",
+            names[0],
+            names[1],
+            a.len(),
+            b.len()
+        )));
+    }
+    Ok(a.into_iter().zip(b).collect())
+}
+
+fn answer_segments<'py>(
+    py: Python<'py>,
+    source: &impl VoxelSource,
+    starts: &Bound<'py, PyAny>,
+    ends: &Bound<'py, PyAny>,
+    options: QueryOptions,
+) -> PyResult<Bound<'py, PyDict>> {
+    let options = checked(options)?;
+    let segs = pairs_of(starts, ends, ["starts", "ends"])?;
+    let answers = py.detach(|| query_segments(source, &segs, &options));
+    let out = PyDict::new(py);
+    out.set_item("p_free", PyArray1::from_iter(py, answers.iter().map(|a| a.p_free)))?;
+    out.set_item("expected_occupied", PyArray1::from_iter(py, answers.iter().map(|a| a.expected_occupied)))?;
+    out.set_item("p_free_lcb", PyArray1::from_iter(py, answers.iter().map(|a| a.p_free_lcb)))?;
+    let hits: Vec<f64> = answers.iter().flat_map(|a| a.first_hit.unwrap_or([f64::NAN; 3])).collect();
+    out.set_item("first_hit", PyArray1::from_vec(py, hits).reshape([answers.len(), 3])?)?;
+    out.set_item("voxels", PyArray1::from_iter(py, answers.iter().map(|a| a.voxels)))?;
+    out.set_item("unknown", PyArray1::from_iter(py, answers.iter().map(|a| a.unknown)))?;
+    Ok(out)
+}
+
+fn answer_boxes<'py>(
+    py: Python<'py>,
+    source: &impl VoxelSource,
+    mins: &Bound<'py, PyAny>,
+    maxs: &Bound<'py, PyAny>,
+    options: QueryOptions,
+) -> PyResult<Bound<'py, PyDict>> {
+    let options = checked(options)?;
+    let boxes = pairs_of(mins, maxs, ["mins", "maxs"])?
+        .into_iter()
+        .map(|(lo, hi)| Aabb::new(lo, hi))
+        .collect::<mrfmap::Result<Vec<_>>>()
+        .map_err(py_err)?;
+    let answers = py
+        .detach(|| boxes.iter().map(|b| query_box(source, b, &options)).collect::<mrfmap::Result<Vec<_>>>())
+        .map_err(py_err)?;
+    let out = PyDict::new(py);
+    out.set_item("max_occupancy", PyArray1::from_iter(py, answers.iter().map(|a| a.max_occupancy)))?;
+    out.set_item("p_free", PyArray1::from_iter(py, answers.iter().map(|a| a.p_free)))?;
+    out.set_item("occupied", PyArray1::from_iter(py, answers.iter().map(|a| a.occupied)))?;
+    out.set_item("free", PyArray1::from_iter(py, answers.iter().map(|a| a.free)))?;
+    out.set_item("unknown", PyArray1::from_iter(py, answers.iter().map(|a| a.unknown)))?;
+    Ok(out)
 }
 
 /// Loads a map file written by `mrfmap build` or `Map.save`.

@@ -153,3 +153,34 @@ def test_range_scan_bad_input():
     mrf = mrfmap.Mapper(0.05, engine="mrf", **CAM)
     with pytest.raises(ValueError, match="depth images only"):
         mrf.add_scan(np.eye(4), dirs, np.array([1.0, 1.0]), 4.0)
+
+
+@pytest.mark.parametrize("engine", ["logodds", "mrf", "crm"])
+def test_path_queries_with_confidence(engine):
+    m = mrfmap.Mapper(0.05, engine=engine, particles=21, **CAM)
+    for i in range(3):
+        m.add_frame(wall(), pose(0.01 * i))
+    m.run()
+    # A path to just before the wall, one through it, one far beside the camera (unknown).
+    starts = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [50.0, 0.0, 0.0]])
+    ends = np.array([[0.0, 0.0, 1.9], [0.0, 0.0, 2.3], [51.0, 0.0, 0.0]])
+    live = m.query_segments(starts, ends, k=1.0)
+    snap = m.map().query_segments(starts, ends, k=1.0)
+    for key in ["p_free", "p_free_lcb", "expected_occupied", "voxels", "unknown"]:
+        np.testing.assert_array_equal(live[key], snap[key])
+    # Every engine's free space is short of certain (and the MRF's band leaves part of the
+    # first path unknown), but through the wall is far less likely free than up to it.
+    assert live["p_free"][0] > 100 * live["p_free"][1]
+    assert np.all(live["p_free_lcb"] <= live["p_free"])
+    assert abs(live["first_hit"][1][2] - 2.025) < 1e-9 and np.isnan(live["first_hit"][0]).all()
+    assert live["unknown"][2] == live["voxels"][2] == 20 and abs(live["p_free"][2] - 0.5**20) < 1e-12
+    pts = m.query_points(np.array([[0.0, 0.0, 2.02], [9.0, 9.0, 9.0]]), unknown=0.25)
+    assert list(pts["known"]) == [True, False] and pts["occupancy"][1] == 0.25
+    boxes = m.map().query_boxes(np.array([[-0.1, -0.1, 1.99]]), np.array([[0.1, 0.1, 2.04]]))
+    assert boxes["occupied"][0] > 0 and boxes["p_free"][0] < 0.5
+    with pytest.raises(ValueError, match="same number of rows"):
+        m.query_segments(starts, ends[:2])
+    with pytest.raises(ValueError, match="unknown"):
+        m.query_points(starts, unknown=1.5)
+    with pytest.raises(ValueError, match="min < max"):
+        m.query_boxes(np.array([[0.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 1.0]]))

@@ -1,7 +1,7 @@
 """Type hints and documentation of mrfmap's compiled module."""
 
 import os
-from typing import Optional, Tuple
+from typing import Any, Dict, Optional, Tuple
 
 import numpy as np
 import numpy.typing as npt
@@ -78,7 +78,27 @@ class Mapper:
     def query(
         self, points: npt.NDArray[np.float64]
     ) -> Tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-        """Occupancy and variance at (N, 3) points: ``self.map().query(points)``."""
+        """Occupancy and variance at (N, 3) points, as ``Map.query``, read from the live engine
+        (no copy of the map)."""
+    def query_points(self, points: npt.NDArray[np.float64], unknown: float = 0.5) -> Dict[str, npt.NDArray[Any]]:
+        """``Map.query_points`` on the live engine."""
+    def query_segments(
+        self,
+        starts: npt.NDArray[np.float64],
+        ends: npt.NDArray[np.float64],
+        unknown: float = 0.5,
+        k: float = 2.0,
+        threshold: float = 0.5,
+    ) -> Dict[str, npt.NDArray[Any]]:
+        """``Map.query_segments`` on the live engine."""
+    def query_boxes(
+        self,
+        mins: npt.NDArray[np.float64],
+        maxs: npt.NDArray[np.float64],
+        unknown: float = 0.5,
+        threshold: float = 0.5,
+    ) -> Dict[str, npt.NDArray[Any]]:
+        """``Map.query_boxes`` on the live engine."""
     @property
     def engine(self) -> str: ...
     @property
@@ -95,6 +115,31 @@ class Map:
         Engines without a variance (log-odds, MRF) report ``p (1 - p)``.
         Raises ``ValueError`` for a wrong shape or NaN points.
         """
+    def query_points(self, points: npt.NDArray[np.float64], unknown: float = 0.5) -> Dict[str, npt.NDArray[Any]]:
+        """Per (N, 3) point: ``occupancy`` (``unknown`` where the map knows nothing), ``std``
+        (the engine's own for CRM, ``sqrt(p (1 - p))`` otherwise) and ``known`` (bool)."""
+    def query_segments(
+        self,
+        starts: npt.NDArray[np.float64],
+        ends: npt.NDArray[np.float64],
+        unknown: float = 0.5,
+        k: float = 2.0,
+        threshold: float = 0.5,
+    ) -> Dict[str, npt.NDArray[Any]]:
+        """Per segment ``starts[i] -> ends[i]`` (both (N, 3)), over the voxels it crosses with
+        positive length (unknown ones at ``unknown``): ``p_free`` = prod(1 - p),
+        ``expected_occupied`` = sum(p), ``p_free_lcb`` = prod(1 - min(1, p + k std)) (a lower
+        confidence bound), ``first_hit`` (N, 3): centre of the first voxel above ``threshold``
+        (NaN if none), ``voxels`` and ``unknown`` counts. Runs in parallel without the GIL."""
+    def query_boxes(
+        self,
+        mins: npt.NDArray[np.float64],
+        maxs: npt.NDArray[np.float64],
+        unknown: float = 0.5,
+        threshold: float = 0.5,
+    ) -> Dict[str, npt.NDArray[Any]]:
+        """Per box ``mins[i]`` to ``maxs[i]``, over the voxels overlapping it: ``max_occupancy``,
+        ``p_free`` (all voxels free), and ``occupied``, ``free``, ``unknown`` counts."""
     def voxels(
         self,
     ) -> Tuple[npt.NDArray[np.float64], npt.NDArray[np.float32], npt.NDArray[np.float32]]:

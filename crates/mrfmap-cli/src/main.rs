@@ -29,7 +29,7 @@ enum Command {
     Calibrate(commands::calibrate::Args),
     /// Look at a noise model: `noise plot noise.toml -o curves.png`.
     Noise(commands::noise::Args),
-    /// Export a map to PLY.
+    /// Export a map to PLY, OctoMap (.bt, .ot) or a Foxglove scene (.mcap).
     Export(commands::export::Args),
     /// A PNG picture of a map from a viewpoint, or a slice of it.
     View(commands::view::Args),

@@ -642,6 +642,13 @@ fn query_json_contract_and_map_operations() {
     let inner_map = Map::load(&inner).unwrap();
     assert_eq!(mrfmap::outputs::read_ply(&changed).unwrap().rows.len(), inner_map.voxels.len());
 
+    // A Foxglove scene of the map: an MCAP file (magic bytes at both ends).
+    let mcap = dir.join("m.mcap");
+    let o = run(&["export", s(&map_path), "--mcap", s(&mcap), "--color", "sigma"]);
+    assert!(o.status.success() && stdout(&o).contains(&format!("{} cubes", map.occupied_count())), "{}", stdout(&o));
+    let bytes = std::fs::read(&mcap).unwrap();
+    assert!(bytes.starts_with(b"\x89MCAP0\r\n") && bytes.ends_with(b"\x89MCAP0\r\n"));
+
     // The floor-to-head slab as a map_server grid: occupied where the box stands.
     let yaml = dir.join("grid.yaml");
     let o = run(&["project", s(&map_path), "--z-min", "0.1", "--z-max", "0.5", "-o", s(&yaml)]);

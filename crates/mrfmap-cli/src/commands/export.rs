@@ -1,13 +1,15 @@
-//! `mrfmap export`: map file to PLY and OctoMap files.
+//! `mrfmap export`: map file to PLY, OctoMap and Foxglove (MCAP) files.
 
 use std::path::PathBuf;
 
 use anyhow::Result;
 use mrfmap::map::Map;
-use mrfmap::outputs::{OctomapFormat, PlyOptions, write_octomap, write_ply};
+use mrfmap::outputs::{
+    OctomapFormat, PlyOptions, SCENE_TOPIC, SceneOptions, write_octomap, write_ply, write_scene_mcap,
+};
 
 #[derive(clap::Args)]
-#[command(group = clap::ArgGroup::new("outputs").required(true).multiple(true).args(["ply", "bt", "ot"]))]
+#[command(group = clap::ArgGroup::new("outputs").required(true).multiple(true).args(["ply", "bt", "ot", "mcap"]))]
 pub struct Args {
     /// Map file written by `mrfmap build`.
     map: PathBuf,
@@ -23,6 +25,19 @@ pub struct Args {
     /// Write an OctoMap `.ot` (log-odds per node).
     #[arg(long)]
     ot: Option<PathBuf>,
+    /// Write an MCAP file with a `foxglove.SceneUpdate` of cubes (one entity per brick) that
+    /// Foxglove opens.
+    #[arg(long)]
+    mcap: Option<PathBuf>,
+    /// MCAP: voxels above this occupancy become cubes.
+    #[arg(long, default_value_t = 0.5)]
+    threshold: f32,
+    /// MCAP: colour cubes by height, sigma or occupancy.
+    #[arg(long, default_value = "occupancy", value_parser = ["height", "sigma", "variance", "occupancy"])]
+    color: String,
+    /// MCAP: the frame id of the scene's entities.
+    #[arg(long, default_value = "map")]
+    frame_id: String,
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -40,6 +55,12 @@ pub fn run(a: Args) -> Result<()> {
             let s = write_octomap(&map, path, format)?;
             println!("{}: {} nodes, {} leaves", path.display(), s.nodes, s.leaves);
         }
+    }
+    if let Some(path) = &a.mcap {
+        let options =
+            SceneOptions { threshold: a.threshold, colouring: a.color.parse()?, frame_id: a.frame_id.clone() };
+        let s = write_scene_mcap(&map, path, &options)?;
+        println!("{}: {} cubes in {} entities on {SCENE_TOPIC}", path.display(), s.cubes, s.entities);
     }
     Ok(())
 }

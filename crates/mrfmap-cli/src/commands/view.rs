@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
 use mrfmap::map::Map;
-use mrfmap::outputs::{Colouring, View, render_map, slice_map};
+use mrfmap::outputs::{View, render_map, slice_map};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -80,11 +80,7 @@ pub fn run(a: Args) -> Result<()> {
         }
         view.fov_degrees = a.fov;
         view.threshold = a.threshold;
-        view.colouring = match a.color.as_str() {
-            "sigma" | "variance" => Colouring::Sigma,
-            "occupancy" => Colouring::Occupancy,
-            _ => Colouring::Height,
-        };
+        view.colouring = a.color.parse()?;
         render_map(&map, &view)?
     };
     canvas.save(&a.output)?;

@@ -2,6 +2,7 @@
 //!
 //! - [`write_ply`] / [`read_ply`]: voxel centres with occupancy (and variance) as PLY;
 //! - [`write_map_server`] / [`read_map_server`]: 2D occupancy grids as ROS `map_server` PGM + YAML;
+//! - `write_scene_mcap` (cargo feature `mcap`): a Foxglove scene of the occupied voxels;
 //! - [`write_octomap`] / [`read_octomap`]: OctoMap `.bt` and `.ot` files;
 //! - [`query_point`], [`query_segment`], [`query_box`]: what a planner asks (occupancy with
 //!   its sigma, the probability that a path or box is free, with a confidence bound);
@@ -15,6 +16,8 @@
 
 mod accuracy;
 mod canvas;
+#[cfg(feature = "mcap")]
+mod foxglove;
 mod grid2d;
 mod octomap;
 pub mod pictures;
@@ -27,6 +30,8 @@ pub use accuracy::{
     AccuracyParams, PeakRule, PixelClass, ProfileStep, RayVerdict, Scorer, VISIBILITY_FLOOR, ViewScore, score_view,
 };
 pub use canvas::{Canvas, PlotArea, Rgb, nice_step};
+#[cfg(feature = "mcap")]
+pub use foxglove::{SCENE_TOPIC, SceneOptions, SceneSummary, write_scene_mcap};
 pub use grid2d::{FREE_THRESH, Grid2dFiles, MapServerGrid, OCCUPIED_THRESH, read_map_server, write_map_server};
 pub use octomap::{OctomapFormat, OctomapLeaf, OctomapSummary, OctomapTree, TREE_DEPTH, read_octomap, write_octomap};
 pub use ply::{PlyOptions, PlyVertices, read_ply, write_changes_ply, write_ply};

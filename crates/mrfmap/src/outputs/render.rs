@@ -10,7 +10,7 @@ use super::canvas::{Canvas, Rgb};
 use super::pictures::viridis;
 use super::truth::mean_sigma;
 use crate::error::{Error, Result};
-use crate::map::{Map, VoxelKey};
+use crate::map::{Map, MapVoxel, VoxelKey};
 use crate::rays::{Aabb, for_each_crossing};
 
 /// What the colour of a rendered voxel says.
@@ -22,6 +22,32 @@ pub enum Colouring {
     Sigma,
     /// Occupancy on [0.5, 1], viridis.
     Occupancy,
+}
+
+impl std::str::FromStr for Colouring {
+    type Err = Error;
+
+    /// `height`, `sigma` (or `variance`), `occupancy`.
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "height" => Ok(Colouring::Height),
+            "sigma" | "variance" => Ok(Colouring::Sigma),
+            "occupancy" => Ok(Colouring::Occupancy),
+            _ => Err(Error::Invalid(format!("unknown colouring {s:?}; use height, sigma or occupancy"))),
+        }
+    }
+}
+
+impl Colouring {
+    /// The colour of `voxel` (at `key` in `map`); `z_range` is the height range `Height` spans.
+    pub fn colour(self, map: &Map, key: VoxelKey, voxel: &MapVoxel, z_range: (f64, f64)) -> Rgb {
+        let r = map.resolution();
+        match self {
+            Colouring::Height => viridis((key.center(r)[2] - z_range.0) / (z_range.1 - z_range.0).max(r)),
+            Colouring::Sigma => viridis(mean_sigma(map, voxel).1 / 0.5),
+            Colouring::Occupancy => viridis((voxel.occupancy as f64 - 0.5) / 0.5),
+        }
+    }
 }
 
 /// A pinhole view of a map.
@@ -98,12 +124,7 @@ pub fn render_map(map: &Map, view: &View) -> Result<Canvas> {
     let bounds = Aabb::new(lo, hi)?;
     let (zmin, zmax) = (lo[2], hi[2]);
     let colour_of = |key: VoxelKey| -> Rgb {
-        let voxel = map.voxels.get(key).expect("hit voxels exist");
-        match v.colouring {
-            Colouring::Height => viridis((key.center(r)[2] - zmin) / (zmax - zmin).max(r)),
-            Colouring::Sigma => viridis(mean_sigma(map, voxel).1 / 0.5),
-            Colouring::Occupancy => viridis((voxel.occupancy as f64 - 0.5) / 0.5),
-        }
+        v.colouring.colour(map, key, map.voxels.get(key).expect("hit voxels exist"), (zmin, zmax))
     };
     let w = v.width as usize;
     let mut rgb = vec![255u8; w * v.height as usize * 3];

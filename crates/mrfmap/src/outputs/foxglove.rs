@@ -1,0 +1,176 @@
+//! A map as a Foxglove scene: an MCAP file with one `foxglove.SceneUpdate` message (JSON
+//! encoding, with its JSON schema) that Foxglove's 3D panel draws as cubes.
+//!
+//! Layout follows the map's sparse bricks: one scene entity per 8x8x8 brick (id `brick/x/y/z`)
+//! holding a cube per voxel above the threshold, so a viewer can show, hide or replace parts of
+//! a large map brick by brick. Cubes are coloured like `mrfmap view` ([`Colouring`]): by
+//! height, occupancy or sigma, all viridis. The frame id is the map's world frame (`map` by
+//! default). Built behind the `mcap` cargo feature.
+
+use std::collections::BTreeMap;
+use std::io::{Cursor, Write};
+use std::path::Path;
+
+use serde_json::{Value, json};
+
+use super::Colouring;
+use crate::atomic_file::write_atomic;
+use crate::error::{Error, Result};
+use crate::map::Map;
+
+/// Topic the scene is published on.
+pub const SCENE_TOPIC: &str = "/mrfmap/occupancy";
+
+/// What goes into the scene.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SceneOptions {
+    /// Voxels above this occupancy become cubes.
+    pub threshold: f32,
+    /// Cube colours.
+    pub colouring: Colouring,
+    /// Coordinate frame of the entities.
+    pub frame_id: String,
+}
+
+impl Default for SceneOptions {
+    fn default() -> Self {
+        SceneOptions { threshold: 0.5, colouring: Colouring::Occupancy, frame_id: "map".into() }
+    }
+}
+
+/// Counts of what [`write_scene_mcap`] wrote.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SceneSummary {
+    /// Entities (bricks with at least one cube).
+    pub entities: usize,
+    /// Cubes (voxels above the threshold).
+    pub cubes: usize,
+}
+
+/// JSON schema of the parts of `foxglove.SceneUpdate` written here (the message follows
+/// Foxglove's published schema; primitive lists we do not use are written empty).
+fn schema() -> Value {
+    let num = json!({"type": "number"});
+    let vec3 = json!({"type": "object", "properties": {"x": num, "y": num, "z": num}});
+    let quat = json!({"type": "object", "properties": {"x": num, "y": num, "z": num, "w": num}});
+    let color = json!({"type": "object", "properties": {"r": num, "g": num, "b": num, "a": num}});
+    let time = json!({"type": "object", "properties": {"sec": {"type": "integer"}, "nsec": {"type": "integer"}}});
+    let cube = json!({"type": "object", "properties": {
+        "pose": {"type": "object", "properties": {"position": vec3, "orientation": quat}},
+        "size": vec3, "color": color,
+    }});
+    let list = json!({"type": "array", "items": {"type": "object"}});
+    json!({
+        "title": "foxglove.SceneUpdate",
+        "description": "An update to the entities displayed in a 3D scene",
+        "type": "object",
+        "properties": {
+            "deletions": list,
+            "entities": {"type": "array", "items": {"type": "object", "properties": {
+                "timestamp": time, "frame_id": {"type": "string"}, "id": {"type": "string"},
+                "lifetime": time, "frame_locked": {"type": "boolean"}, "metadata": list,
+                "arrows": list, "cubes": {"type": "array", "items": cube}, "spheres": list,
+                "cylinders": list, "lines": list, "triangles": list, "texts": list, "models": list,
+            }}},
+        },
+    })
+}
+
+/// The scene message for `map`.
+fn scene(map: &Map, options: &SceneOptions) -> (Value, SceneSummary) {
+    let r = map.resolution();
+    let z_range = map.bounds().map_or((0.0, 1.0), |(lo, hi)| (lo[2], hi[2]));
+    let zero = json!({"sec": 0, "nsec": 0});
+    let mut entities = Vec::new();
+    let mut cubes_total = 0;
+    for bk in map.voxels.sorted_brick_keys() {
+        let brick = map.voxels.brick(bk).expect("own key");
+        let cubes: Vec<Value> = brick
+            .iter()
+            .filter(|(_, v)| v.occupancy > options.threshold)
+            .map(|(slot, v)| {
+                let key = bk.voxel(slot);
+                let c = key.center(r);
+                let [red, green, blue] = options.colouring.colour(map, key, v, z_range).map(|x| x as f64 / 255.0);
+                json!({
+                    "pose": {"position": {"x": c[0], "y": c[1], "z": c[2]},
+                             "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}},
+                    "size": {"x": r, "y": r, "z": r},
+                    "color": {"r": red, "g": green, "b": blue, "a": 1.0},
+                })
+            })
+            .collect();
+        if cubes.is_empty() {
+            continue;
+        }
+        cubes_total += cubes.len();
+        let [x, y, z] = bk.0;
+        entities.push(json!({
+            "timestamp": zero, "frame_id": options.frame_id, "id": format!("brick/{x}/{y}/{z}"),
+            "lifetime": zero, "frame_locked": false, "metadata": [],
+            "arrows": [], "cubes": cubes, "spheres": [], "cylinders": [], "lines": [],
+            "triangles": [], "texts": [], "models": [],
+        }));
+    }
+    let summary = SceneSummary { entities: entities.len(), cubes: cubes_total };
+    (json!({"deletions": [], "entities": entities}), summary)
+}
+
+/// Writes `map` as an MCAP file Foxglove opens: one `foxglove.SceneUpdate` on
+/// [`SCENE_TOPIC`] (atomically: temp file + rename).
+pub fn write_scene_mcap(map: &Map, path: &Path, options: &SceneOptions) -> Result<SceneSummary> {
+    let (message, summary) = scene(map, options);
+    let encode = || -> std::result::Result<Vec<u8>, mcap::McapError> {
+        let mut out = mcap::Writer::new(Cursor::new(Vec::new()))?;
+        let schema = out.add_schema("foxglove.SceneUpdate", "jsonschema", schema().to_string().as_bytes())?;
+        let mut metadata = BTreeMap::new();
+        metadata.insert("resolution".to_string(), map.resolution().to_string());
+        metadata.insert("engine".to_string(), map.engine.clone());
+        let channel = out.add_channel(schema, SCENE_TOPIC, "json", &metadata)?;
+        let header = mcap::records::MessageHeader { channel_id: channel, sequence: 0, log_time: 0, publish_time: 0 };
+        out.write_to_known_channel(&header, message.to_string().as_bytes())?;
+        out.finish()?;
+        Ok(out.into_inner().into_inner())
+    };
+    let bytes = encode().map_err(|e| Error::file(path, format!("writing MCAP: {e}")))?;
+    write_atomic(path, |w| w.write_all(&bytes))?;
+    Ok(summary)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::map::{MapVoxel, VoxelKey};
+
+    #[test]
+    fn the_scene_reads_back_as_one_scene_update_with_a_cube_per_occupied_voxel() {
+        let mut map = Map::new("logodds", 0.1).unwrap();
+        for (k, p) in [([0, 0, 0], 0.9), ([1, 0, 0], 0.2), ([9, 0, 0], 0.7), ([-1, -1, 3], 0.99)] {
+            map.voxels.insert(VoxelKey(k), MapVoxel { occupancy: p, variance: 0.0 });
+        }
+        let dir = std::env::temp_dir().join(format!("mrfmap-foxglove-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("m.mcap");
+        let summary = write_scene_mcap(&map, &path, &SceneOptions::default()).unwrap();
+        assert_eq!(summary, SceneSummary { entities: 3, cubes: 3 });
+        let bytes = std::fs::read(&path).unwrap();
+        let messages: Vec<_> =
+            mcap::MessageStream::new(&bytes).unwrap().collect::<std::result::Result<_, _>>().unwrap();
+        assert_eq!(messages.len(), 1);
+        let m = &messages[0];
+        assert_eq!((m.channel.topic.as_str(), m.channel.message_encoding.as_str()), (SCENE_TOPIC, "json"));
+        let schema = m.channel.schema.as_ref().unwrap();
+        assert_eq!((schema.name.as_str(), schema.encoding.as_str()), ("foxglove.SceneUpdate", "jsonschema"));
+        let v: Value = serde_json::from_slice(&m.data).unwrap();
+        let entities = v["entities"].as_array().unwrap();
+        let ids: Vec<&str> = entities.iter().map(|e| e["id"].as_str().unwrap()).collect();
+        assert_eq!(ids, ["brick/-1/-1/0", "brick/0/0/0", "brick/1/0/0"]);
+        let cube = &entities[1]["cubes"][0];
+        assert!((cube["pose"]["position"]["x"].as_f64().unwrap() - 0.05).abs() < 1e-12);
+        assert_eq!(cube["size"]["z"].as_f64().unwrap(), 0.1);
+        let colour = cube["color"]["g"].as_f64().unwrap();
+        assert!((0.0..=1.0).contains(&colour));
+        assert_eq!(entities[1]["frame_id"], "map");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}

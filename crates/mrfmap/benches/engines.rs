@@ -1,5 +1,5 @@
 //! Micro-benchmarks (divan): voxel traversal, one frame through each engine, one MRF
-//! iteration over N keyframes, and scoring one held-out view. The frames are the demo room
+//! iteration over N keyframes, scoring one held-out view, and batched planner queries. The frames are the demo room
 //! (`crates/mrfmap-cli/assets/demo_room.toml`, 640x480, D435-like noise) rendered in setup.
 //!
 //! Run: `cargo bench -p mrfmap --bench engines` (release). Results: BENCHMARKS.md.
@@ -10,7 +10,8 @@ use std::sync::Arc;
 use divan::{Bencher, black_box, counter::ItemsCount};
 use mrfmap::frames::Frame;
 use mrfmap::inference::{CrmEngine, CrmParams, Engine, LogOddsEngine, LogOddsParams, Marking, MrfEngine, MrfParams};
-use mrfmap::outputs::{AccuracyParams, Scorer};
+use mrfmap::map::{Map, MapVoxel, VoxelKey};
+use mrfmap::outputs::{AccuracyParams, QueryOptions, Scorer, VoxelSource, query_points, query_segments};
 use mrfmap::random::Rng;
 use mrfmap::rays::for_each_crossing;
 use mrfmap::source::Scene;
@@ -128,4 +129,65 @@ fn accuracy_view(bencher: Bencher) {
     let scorer = Scorer::new(&map, params);
     let held = &fs[0];
     bencher.bench(|| black_box(scorer.score_view(&held.camera, &held.pose, &held.depth)));
+}
+
+/// A log-odds map of 12 demo-room views at 0.05 m, and `n` random queries inside its bounds:
+/// points, and 1 m segments in random directions.
+fn query_setup(n: usize) -> (Map, Vec<[f64; 3]>, Vec<([f64; 3], [f64; 3])>) {
+    let mut e = LogOddsEngine::new(0.05, Default::default(), LogOddsParams::default()).unwrap();
+    for f in &frames(12) {
+        e.integrate(f).unwrap();
+    }
+    let map = e.map();
+    let (lo, hi) = map.bounds().unwrap();
+    let mut rng = Rng::new(5);
+    let points: Vec<[f64; 3]> = (0..n).map(|_| [0, 1, 2].map(|a| rng.range(lo[a], hi[a]))).collect();
+    let segments = points
+        .iter()
+        .map(|a| {
+            let d = [rng.normal(), rng.normal(), rng.normal()];
+            let len = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+            (*a, [0, 1, 2].map(|i| a[i] + d[i] / len))
+        })
+        .collect();
+    (map, points, segments)
+}
+
+/// A map read voxel by voxel through its hash map, without the brick cache of
+/// `Map`'s lookup: the baseline for the segment queries.
+struct Uncached<'a>(&'a Map);
+
+impl VoxelSource for Uncached<'_> {
+    fn resolution(&self) -> f64 {
+        self.0.resolution()
+    }
+    fn has_variance(&self) -> bool {
+        self.0.has_variance
+    }
+    fn voxel(&self, key: VoxelKey) -> Option<MapVoxel> {
+        self.0.voxels.get(key).copied()
+    }
+}
+
+/// Batched point queries (occupancy, sigma, known), all threads.
+#[divan::bench(sample_count = 10)]
+fn query_points_batch(bencher: Bencher) {
+    let (map, points, _) = query_setup(1_000_000);
+    let opts = QueryOptions::default();
+    bencher.counter(ItemsCount::new(points.len())).bench(|| black_box(query_points(&map, &points, &opts)));
+}
+
+/// Batched 1 m segment queries at 0.05 m (free probability, its bound, first hit), all
+/// threads; `uncached` looks every voxel up in the hash map (the baseline).
+#[divan::bench(args = ["brick-cached", "uncached"], sample_count = 10)]
+fn query_segments_batch(bencher: Bencher, lookup: &str) {
+    let (map, _, segments) = query_setup(200_000);
+    let opts = QueryOptions::default();
+    bencher.counter(ItemsCount::new(segments.len())).bench(|| {
+        if lookup == "uncached" {
+            black_box(query_segments(&Uncached(&map), &segments, &opts))
+        } else {
+            black_box(query_segments(&map, &segments, &opts))
+        }
+    });
 }

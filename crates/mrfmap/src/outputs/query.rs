@@ -62,18 +62,17 @@ impl VoxelSource for Map {
     }
 
     fn lookup(&self) -> impl FnMut(VoxelKey) -> Option<MapVoxel> + '_ {
-        let mut last: Option<(BrickKey, Option<&Brick<MapVoxel>>)> = None;
-        move |key| {
+        // No real brick has this key (voxel keys are i32, bricks are keys >> 3).
+        let mut last_key = BrickKey([i32::MIN; 3]);
+        let mut last: Option<&Brick<MapVoxel>> = None;
+        #[inline(always)]
+        move |key: VoxelKey| {
             let bk = key.brick();
-            let brick = match last {
-                Some((k, b)) if k == bk => b,
-                _ => {
-                    let b = self.voxels.brick(bk);
-                    last = Some((bk, b));
-                    b
-                }
-            };
-            brick?.get(key.slot()).copied()
+            if bk != last_key {
+                last_key = bk;
+                last = self.voxels.brick(bk);
+            }
+            last?.get(key.slot()).copied()
         }
     }
 }
@@ -238,18 +237,28 @@ fn segment_with(
     // through occupied space underflows to 0, which is the right answer.
     let mut answer =
         SegmentAnswer { p_free: 1.0, expected_occupied: 0.0, p_free_lcb: 1.0, first_hit: None, voxels: 0, unknown: 0 };
-    for_each_crossing(a, dir, 0.0, 1.0, resolution, |c| {
-        let (p, sigma, known) = options.belief(lookup(c.key), has_variance);
-        answer.p_free *= 1.0 - p;
-        answer.p_free_lcb *= 1.0 - (p + options.k * sigma).min(1.0);
-        answer.expected_occupied += p;
-        answer.voxels += 1;
-        answer.unknown += !known as u32;
-        if answer.first_hit.is_none() && p > options.threshold {
-            answer.first_hit = Some(c.key.center(resolution));
-        }
-        ControlFlow::Continue(())
-    });
+    // `inline(always)` here and on the map's lookup: left to the compiler, both closures
+    // stayed calls and 1 m segment queries ran at 1.8 M/s instead of 3.5 M/s (cargo bench).
+    for_each_crossing(
+        a,
+        dir,
+        0.0,
+        1.0,
+        resolution,
+        #[inline(always)]
+        |c| {
+            let (p, sigma, known) = options.belief(lookup(c.key), has_variance);
+            answer.p_free *= 1.0 - p;
+            answer.p_free_lcb *= 1.0 - (p + options.k * sigma).min(1.0);
+            answer.expected_occupied += p;
+            answer.voxels += 1;
+            answer.unknown += !known as u32;
+            if answer.first_hit.is_none() && p > options.threshold {
+                answer.first_hit = Some(c.key.center(resolution));
+            }
+            ControlFlow::Continue(())
+        },
+    );
     answer
 }
 

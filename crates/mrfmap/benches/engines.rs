@@ -5,7 +5,6 @@
 //! Run: `cargo bench -p mrfmap --bench engines` (release). Results: BENCHMARKS.md.
 
 use std::ops::ControlFlow;
-use std::sync::Arc;
 
 use divan::{Bencher, black_box, counter::ItemsCount};
 use mrfmap::frames::Frame;
@@ -28,20 +27,7 @@ fn room() -> Scene {
 /// The first `n` views of the demo room, noisy.
 fn frames(n: usize) -> Vec<Frame> {
     let scene = room();
-    scene
-        .views
-        .iter()
-        .take(n)
-        .enumerate()
-        .map(|(i, pose)| Frame {
-            index: i,
-            timestamp: i as f64,
-            depth: scene.add_noise(&scene.render(pose), 1, i),
-            pose: *pose,
-            camera: scene.camera,
-            noise: scene.noise.clone().map(Arc::new),
-        })
-        .collect()
+    scene.views.iter().take(n).enumerate().map(|(i, pose)| scene.frame(i, pose, Some(1))).collect()
 }
 
 /// Voxels visited per second: 1000 random 5 m rays at 0.01 m (about 870 voxels each).

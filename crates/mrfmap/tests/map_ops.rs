@@ -2,8 +2,6 @@
 //! the map of all frames, crop / clear / diff / project against enumeration, and queries on
 //! live engines against queries on their finished maps.
 
-use std::sync::Arc;
-
 use mrfmap::frames::Frame;
 use mrfmap::inference::{EngineConfig, EngineKind, LogOddsParams, new_engine};
 use mrfmap::map::{Map, MapVoxel, VoxelState};
@@ -24,19 +22,7 @@ const SCENE: &str = "[camera]\nfx = 60.0\nfy = 60.0\ncx = 39.5\ncy = 29.5\nwidth
 
 fn frames() -> Vec<Frame> {
     let scene = Scene::from_toml(SCENE, "map-ops.toml".as_ref()).unwrap();
-    scene
-        .views
-        .iter()
-        .enumerate()
-        .map(|(i, pose)| Frame {
-            index: i,
-            timestamp: i as f64,
-            depth: scene.add_noise(&scene.render(pose), 3, i),
-            pose: *pose,
-            camera: scene.camera,
-            noise: scene.noise.clone().map(Arc::new),
-        })
-        .collect()
+    scene.views.iter().enumerate().map(|(i, pose)| scene.frame(i, pose, Some(3))).collect()
 }
 
 fn config(kind: EngineKind) -> EngineConfig {

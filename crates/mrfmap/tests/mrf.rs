@@ -14,25 +14,7 @@ fn scene(text: &str) -> Scene {
 
 /// Frames of `scene` from `poses`: noise-free, or noisy with `seed`.
 fn frames(scene: &Scene, poses: &[Pose], seed: Option<u64>) -> Vec<Frame> {
-    poses
-        .iter()
-        .enumerate()
-        .map(|(i, pose)| {
-            let truth = scene.render(pose);
-            let depth = match seed {
-                Some(s) => scene.add_noise(&truth, s, i),
-                None => truth,
-            };
-            Frame {
-                index: i,
-                timestamp: i as f64,
-                depth,
-                pose: *pose,
-                camera: scene.camera,
-                noise: scene.noise.clone().map(Arc::new),
-            }
-        })
-        .collect()
+    poses.iter().enumerate().map(|(i, pose)| scene.frame(i, pose, seed)).collect()
 }
 
 /// A wall whose face lies on a voxel boundary (x = 2.0) and a Kinect-like noisy camera.

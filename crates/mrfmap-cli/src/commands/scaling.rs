@@ -196,18 +196,9 @@ pub fn run(a: Args) -> Result<()> {
         mrfmap::frames::look_at(eye.into(), [2.0, 2.0, 0.6].into()).expect("valid view")
     };
     let render = |k: usize, offset: f64| {
-        let pose = orbit(k);
-        let depth = scene.add_noise(&scene.render(&pose), 7, k);
-        let mut pose = pose;
-        pose.translation.vector.x += offset; // far-away copies do not overlap
-        Frame {
-            index: k,
-            timestamp: k as f64,
-            depth,
-            pose,
-            camera: scene.camera,
-            noise: scene.noise.clone().map(Arc::new),
-        }
+        let mut frame = scene.frame(k, &orbit(k), Some(7));
+        frame.pose.translation.vector.x += offset; // far-away copies do not overlap
+        frame
     };
     let room: Vec<Frame> = (0..=n_max).map(|k| render(k, 0.0)).collect();
     let _ = writeln!(

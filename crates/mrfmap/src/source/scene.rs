@@ -10,7 +10,7 @@ use nalgebra::Vector3;
 use serde::Deserialize;
 
 use crate::error::{Error, Result, parse_toml, read_text};
-use crate::frames::{Camera, DepthImage, NoiseModel, Pose, look_at};
+use crate::frames::{Camera, DepthImage, Frame, NoiseModel, Pose, look_at};
 use crate::random::Rng;
 
 /// A solid primitive.
@@ -289,6 +289,18 @@ impl Scene {
             }
         });
         DepthImage::from_vec(cam.width, cam.height, data).expect("sized from camera")
+    }
+
+    /// Frame `index` of the scene seen from `pose`: its depth image (noisy with the scene's
+    /// noise model and `seed`, or noise-free), the scene's camera and noise model.
+    pub fn frame(&self, index: usize, pose: &Pose, seed: Option<u64>) -> Frame {
+        let truth = self.render(pose);
+        let depth = match seed {
+            Some(s) => self.add_noise(&truth, s, index),
+            None => truth,
+        };
+        let noise = self.noise.clone().map(std::sync::Arc::new);
+        Frame { index, timestamp: index as f64, depth, pose: *pose, camera: self.camera, noise }
     }
 
     /// `truth` with the scene's noise model applied (per patch when it has patches):

@@ -13,7 +13,7 @@ use mrfmap::inference::{CrmParams, Engine, EngineConfig, EngineKind, KeyframeId,
 use mrfmap::map::Map;
 use mrfmap::outputs::{
     LiveEngine, OctomapFormat, PlyOptions, PointAnswer, QueryOptions, VoxelSource, query_box, query_points,
-    query_segments, write_octomap, write_ply,
+    query_polyline, query_segments, write_octomap, write_ply,
 };
 use mrfmap::rays::{Aabb, RayLimits};
 use nalgebra::{Matrix3, Rotation3, Translation3, UnitQuaternion};
@@ -358,6 +358,19 @@ impl Mapper {
         answer_segments(py, &LiveEngine(self.lock().engine()), starts, ends, QueryOptions { unknown, k, threshold })
     }
 
+    /// `Map.query_polyline` on the live engine (no copy of the map).
+    #[pyo3(signature = (points, unknown=0.5, k=2.0, threshold=0.5))]
+    fn query_polyline<'py>(
+        &self,
+        py: Python<'py>,
+        points: &Bound<'py, PyAny>,
+        unknown: f64,
+        k: f64,
+        threshold: f64,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        answer_polyline(py, &LiveEngine(self.lock().engine()), points, QueryOptions { unknown, k, threshold })
+    }
+
     /// `Map.query_boxes` on the live engine (no copy of the map).
     #[pyo3(signature = (mins, maxs, unknown=0.5, threshold=0.5))]
     fn query_boxes<'py>(
@@ -439,6 +452,19 @@ impl PyMap {
         threshold: f64,
     ) -> PyResult<Bound<'py, PyDict>> {
         answer_boxes(py, &self.map, mins, maxs, QueryOptions { unknown, threshold, ..Default::default() })
+    }
+
+    /// One path through (K, 3) waypoints, each voxel counted once.
+    #[pyo3(signature = (points, unknown=0.5, k=2.0, threshold=0.5))]
+    fn query_polyline<'py>(
+        &self,
+        py: Python<'py>,
+        points: &Bound<'py, PyAny>,
+        unknown: f64,
+        k: f64,
+        threshold: f64,
+    ) -> PyResult<Bound<'py, PyDict>> {
+        answer_polyline(py, &self.map, points, QueryOptions { unknown, k, threshold })
     }
 
     /// All voxels: centres (N, 3), occupancy (N,) and variance (N,).
@@ -579,6 +605,25 @@ fn answer_segments<'py>(
     out.set_item("first_hit", PyArray1::from_vec(py, hits).reshape([answers.len(), 3])?)?;
     out.set_item("voxels", PyArray1::from_iter(py, answers.iter().map(|a| a.voxels)))?;
     out.set_item("unknown", PyArray1::from_iter(py, answers.iter().map(|a| a.unknown)))?;
+    Ok(out)
+}
+
+fn answer_polyline<'py>(
+    py: Python<'py>,
+    source: &impl VoxelSource,
+    points: &Bound<'py, PyAny>,
+    options: QueryOptions,
+) -> PyResult<Bound<'py, PyDict>> {
+    let options = checked(options)?;
+    let pts = points_of(points, "points")?;
+    let a = py.detach(|| query_polyline(source, &pts, &options));
+    let out = PyDict::new(py);
+    out.set_item("p_free", a.p_free)?;
+    out.set_item("expected_occupied", a.expected_occupied)?;
+    out.set_item("p_free_lcb", a.p_free_lcb)?;
+    out.set_item("first_hit", a.first_hit.map(|h| h.to_vec()))?;
+    out.set_item("voxels", a.voxels)?;
+    out.set_item("unknown", a.unknown)?;
     Ok(out)
 }
 

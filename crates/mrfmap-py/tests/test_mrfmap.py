@@ -174,6 +174,12 @@ def test_path_queries_with_confidence(engine):
     assert np.all(live["p_free_lcb"] <= live["p_free"])
     assert abs(live["first_hit"][1][2] - 2.025) < 1e-9 and np.isnan(live["first_hit"][0]).all()
     assert live["unknown"][2] == live["voxels"][2] == 20 and abs(live["p_free"][2] - 0.5**20) < 1e-12
+    # There and back again: the polyline counts each voxel once, like the one-way segment.
+    # (Ends inside voxels: at a face, rounding may touch the next voxel for 1e-16 m.)
+    there_and_back = m.query_polyline(np.array([[0.0, 0.0, 1.01], [0.0, 0.0, 2.31], [0.0, 0.0, 1.01]]), k=1.0)
+    one_way = m.query_segments(np.array([[0.0, 0.0, 1.01]]), np.array([[0.0, 0.0, 2.31]]), k=1.0)
+    assert there_and_back["voxels"] == one_way["voxels"][0] and there_and_back["p_free"] == one_way["p_free"][0]
+    assert abs(there_and_back["first_hit"][2] - 2.025) < 1e-9
     pts = m.query_points(np.array([[0.0, 0.0, 2.02], [9.0, 9.0, 9.0]]), unknown=0.25)
     assert list(pts["known"]) == [True, False] and pts["occupancy"][1] == 0.25
     boxes = m.map().query_boxes(np.array([[-0.1, -0.1, 1.99]]), np.array([[0.1, 0.1, 2.04]]))

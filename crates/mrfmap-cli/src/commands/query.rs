@@ -1,22 +1,25 @@
-//! `mrfmap query`: what a planner asks of a map — points, segments and boxes, with
+//! `mrfmap query`: what a planner asks of a map — points, segments, polylines and boxes, with
 //! confidence — as text or one JSON object (the contract scripts rely on: README "Queries").
 
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 use mrfmap::map::Map;
-use mrfmap::outputs::{QueryOptions, query_box, query_points, query_segments};
+use mrfmap::outputs::{QueryOptions, SegmentAnswer, query_box, query_points, query_polyline, query_segments};
 use mrfmap::rays::Aabb;
 use serde_json::{Value, json};
 
 #[derive(clap::Args)]
-#[command(group = clap::ArgGroup::new("what").required(true).multiple(true).args(["segment", "points", "boxes"]))]
+#[command(group = clap::ArgGroup::new("what").required(true).multiple(true).args(["segment", "polyline", "points", "boxes"]))]
 pub struct Args {
     /// Map file written by `mrfmap build`.
     map: PathBuf,
     /// A straight path `X,Y,Z:X,Y,Z` (metres, world frame); repeat for more.
     #[arg(long, value_name = "X,Y,Z:X,Y,Z", allow_hyphen_values = true)]
     segment: Vec<String>,
+    /// A path through waypoints `X,Y,Z:X,Y,Z:...` (each voxel counted once); repeat for more.
+    #[arg(long, value_name = "X,Y,Z:X,Y,Z:...", allow_hyphen_values = true)]
+    polyline: Vec<String>,
     /// A CSV file of points `x,y,z`, one per line (`#` comments and a header line allowed).
     #[arg(long, value_name = "FILE.csv")]
     points: Option<PathBuf>,
@@ -32,7 +35,7 @@ pub struct Args {
     /// Occupancy above which a voxel is occupied (`first_hit`, box counts).
     #[arg(long, default_value_t = 0.5)]
     threshold: f64,
-    /// Print one JSON object `{"segments": [...], "points": [...], "boxes": [...]}`.
+    /// Print one JSON object `{"segments": [...], "polylines": [...], "points": [...], "boxes": [...]}`.
     #[arg(long)]
     json: bool,
 }
@@ -41,6 +44,7 @@ pub fn run(a: Args) -> Result<()> {
     let options = QueryOptions { unknown: a.unknown, k: a.k, threshold: a.threshold };
     options.validate()?;
     let segments: Vec<([f64; 3], [f64; 3])> = a.segment.iter().map(|s| parse_segment(s)).collect::<Result<_>>()?;
+    let polylines: Vec<Vec<[f64; 3]>> = a.polyline.iter().map(|s| parse_polyline(s)).collect::<Result<_>>()?;
     let boxes: Vec<Aabb> =
         a.boxes.iter().map(|b| Aabb::parse(b).with_context(|| format!("--box {b}"))).collect::<Result<_>>()?;
     let points = match &a.points {
@@ -50,16 +54,28 @@ pub fn run(a: Args) -> Result<()> {
     let map = Map::load(&a.map)?;
 
     let seg_answers = query_segments(&map, &segments, &options);
+    let poly_answers: Vec<_> = polylines.iter().map(|p| query_polyline(&map, p, &options)).collect();
     let point_answers = query_points(&map, &points, &options);
     let box_answers: Vec<_> = boxes.iter().map(|b| query_box(&map, b, &options)).collect::<Result<_, _>>()?;
 
     if a.json {
-        let out = json!({
-            "segments": segments.iter().zip(&seg_answers).map(|((from, to), s)| json!({
-                "from": from, "to": to,
+        let path = |s: &SegmentAnswer| {
+            json!({
                 "p_free": s.p_free, "expected_occupied": s.expected_occupied, "p_free_lcb": s.p_free_lcb,
                 "first_hit": s.first_hit, "voxels": s.voxels, "unknown": s.unknown,
-            })).collect::<Vec<Value>>(),
+            })
+        };
+        let with = |mut v: Value, key: &str, value: Value| {
+            v[key] = value;
+            v
+        };
+        let out = json!({
+            "segments": segments.iter().zip(&seg_answers)
+                .map(|((from, to), s)| with(with(path(s), "from", json!(from)), "to", json!(to)))
+                .collect::<Vec<Value>>(),
+            "polylines": polylines.iter().zip(&poly_answers)
+                .map(|(points, s)| with(path(s), "points", json!(points)))
+                .collect::<Vec<Value>>(),
             "points": points.iter().zip(&point_answers).map(|(p, q)| json!({
                 "point": p, "occupancy": q.occupancy, "std": q.sigma, "known": q.known,
             })).collect::<Vec<Value>>(),
@@ -72,19 +88,19 @@ pub fn run(a: Args) -> Result<()> {
         return Ok(());
     }
     let fmt3 = |p: &[f64; 3]| format!("{:.3},{:.3},{:.3}", p[0], p[1], p[2]);
-    for ((from, to), s) in segments.iter().zip(&seg_answers) {
+    let describe = |s: &SegmentAnswer| {
         let hit = s.first_hit.as_ref().map_or("none".into(), fmt3);
-        println!(
-            "segment {} -> {}: p_free {:.4} (k = {} bound {:.4}), expected occupied {:.3}, {} voxels ({} unknown), first hit {hit}",
-            fmt3(from),
-            fmt3(to),
-            s.p_free,
-            a.k,
-            s.p_free_lcb,
-            s.expected_occupied,
-            s.voxels,
-            s.unknown
-        );
+        format!(
+            "p_free {:.4} (k = {} bound {:.4}), expected occupied {:.3}, {} voxels ({} unknown), first hit {hit}",
+            s.p_free, a.k, s.p_free_lcb, s.expected_occupied, s.voxels, s.unknown
+        )
+    };
+    for ((from, to), s) in segments.iter().zip(&seg_answers) {
+        println!("segment {} -> {}: {}", fmt3(from), fmt3(to), describe(s));
+    }
+    for (points, s) in polylines.iter().zip(&poly_answers) {
+        let path: Vec<String> = points.iter().map(fmt3).collect();
+        println!("polyline {}: {}", path.join(" -> "), describe(s));
     }
     for (p, q) in points.iter().zip(&point_answers) {
         let known = if q.known { "" } else { " (unknown)" };
@@ -112,8 +128,21 @@ fn parse_point(text: &str) -> Option<[f64; 3]> {
 }
 
 fn parse_segment(text: &str) -> Result<([f64; 3], [f64; 3])> {
-    let parsed = text.split_once(':').and_then(|(a, b)| Some((parse_point(a)?, parse_point(b)?)));
-    parsed.with_context(|| format!("--segment {text:?}: need X,Y,Z:X,Y,Z with finite numbers"))
+    match parse_points(text).as_deref() {
+        Some([a, b]) => Ok((*a, *b)),
+        _ => bail!("--segment {text:?}: need X,Y,Z:X,Y,Z with finite numbers"),
+    }
+}
+
+fn parse_polyline(text: &str) -> Result<Vec<[f64; 3]>> {
+    parse_points(text)
+        .filter(|p| p.len() >= 2)
+        .with_context(|| format!("--polyline {text:?}: need X,Y,Z:X,Y,Z[:X,Y,Z...] with finite numbers"))
+}
+
+/// `X,Y,Z:X,Y,Z:...`
+fn parse_points(text: &str) -> Option<Vec<[f64; 3]>> {
+    text.split(':').map(parse_point).collect()
 }
 
 /// Points of a CSV file: `x,y,z` per line; blank lines and `#` comments skipped, and a first

@@ -99,6 +99,10 @@ class Mapper:
         threshold: float = 0.5,
     ) -> Dict[str, npt.NDArray[Any]]:
         """``Map.query_boxes`` on the live engine."""
+    def query_polyline(
+        self, points: npt.NDArray[np.float64], unknown: float = 0.5, k: float = 2.0, threshold: float = 0.5
+    ) -> Dict[str, Any]:
+        """``Map.query_polyline`` on the live engine."""
     @property
     def engine(self) -> str: ...
     @property
@@ -140,6 +144,12 @@ class Map:
     ) -> Dict[str, npt.NDArray[Any]]:
         """Per box ``mins[i]`` to ``maxs[i]``, over the voxels overlapping it: ``max_occupancy``,
         ``p_free`` (all voxels free), and ``occupied``, ``free``, ``unknown`` counts."""
+    def query_polyline(
+        self, points: npt.NDArray[np.float64], unknown: float = 0.5, k: float = 2.0, threshold: float = 0.5
+    ) -> Dict[str, Any]:
+        """One path through (K, 3) waypoints, as ``query_segments`` over the union of the legs'
+        voxels (each counted once): ``p_free``, ``expected_occupied``, ``p_free_lcb`` (floats),
+        ``first_hit`` (a list of 3 floats or None), ``voxels``, ``unknown`` (ints)."""
     def voxels(
         self,
     ) -> Tuple[npt.NDArray[np.float64], npt.NDArray[np.float32], npt.NDArray[np.float32]]:

@@ -37,7 +37,8 @@ pub use octomap::{OctomapFormat, OctomapLeaf, OctomapSummary, OctomapTree, TREE_
 pub use ply::{PlyOptions, PlyVertices, read_ply, write_changes_ply, write_ply};
 pub use query::{
     BoxAnswer, LiveEngine, MAX_BOX_VOXELS, PointAnswer, QueryOptions, SegmentAnswer, VoxelSource, box_keys,
-    box_voxel_count, for_each_in_box, query_box, query_point, query_points, query_segment, query_segments,
+    box_voxel_count, for_each_in_box, query_box, query_point, query_points, query_polyline, query_segment,
+    query_segments,
 };
 pub use render::{Colouring, View, render_map, slice_map};
 pub use truth::{

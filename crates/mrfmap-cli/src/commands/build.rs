@@ -1,18 +1,20 @@
-//! `mrfmap build`: dataset in, map file out. Also the building blocks that `demo`, `loo`
+//! `mrfmap build`: dataset or laser log in, map file out. Also the building blocks that `demo`, `loo`
 //! and `compare` share: map options, frame selection, and the integration loop.
 
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
-use mrfmap::frames::Frame;
+use std::sync::Arc;
+
+use mrfmap::frames::{Frame, NoiseModel, Poly, RangeScan};
 use mrfmap::inference::{
-    Aggregation, Allocation, CrmParams, EngineConfig, EngineKind, KeyframeSelection, LogOddsParams, Marking, MrfParams,
-    new_engine,
+    Aggregation, Allocation, CrmParams, Engine, EngineConfig, EngineKind, KeyframeSelection, LogOddsParams, Marking,
+    MrfParams, new_engine,
 };
 use mrfmap::map::Map;
 use mrfmap::rays::{Aabb, RayLimits};
-use mrfmap::source::Dataset;
+use mrfmap::source::{BeamSpacing, CarmenLog, CarmenOptions, Dataset, Misses};
 
 /// Options that shape how any map is built from a dataset.
 #[derive(clap::Args, Clone)]
@@ -100,9 +102,71 @@ impl MapOptions {
     }
 }
 
+/// How a planar laser log (CARMEN) is read and thinned.
+#[derive(clap::Args, Clone)]
+pub struct LaserOptions {
+    /// Laser logs: keep every N-th beam of each scan (the CRM paper's real-data test gives
+    /// its maps every tenth).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..))]
+    pub beams_every: u32,
+    /// Laser logs: keep every N-th scan.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..))]
+    pub scans_every: u32,
+    /// Laser logs: FLASER/RLASER beams are pi/n apart (n) or pi/(n-1) apart (n-1).
+    #[arg(long, default_value = "n", value_parser = ["n", "n-1"])]
+    pub beam_spacing: String,
+    /// Laser logs: FLASER/RLASER ranges at or beyond this are misses (no return).
+    #[arg(long, default_value_t = 80.0, value_parser = super::positive)]
+    pub laser_max_range: f64,
+    /// Laser logs: misses clear space up to the maximum range (free) or are dropped (ignore).
+    #[arg(long, default_value = "free", value_parser = ["free", "ignore"])]
+    pub misses: String,
+    /// Laser logs: range noise std in metres for CRM (constant; --noise replaces it).
+    #[arg(long, default_value_t = 0.03, value_parser = super::positive)]
+    pub laser_std: f64,
+}
+
+impl LaserOptions {
+    /// Reads the log at `path`.
+    pub fn open(&self, path: &std::path::Path) -> Result<CarmenLog> {
+        let spacing =
+            if self.beam_spacing == "n-1" { BeamSpacing::FieldOverNMinusOne } else { BeamSpacing::FieldOverN };
+        Ok(CarmenLog::open(path, CarmenOptions { spacing, max_range: self.laser_max_range })?)
+    }
+
+    /// The scans of `log` this asks for, planar at the middle of the map's layer 0 (`z = r / 2`),
+    /// with the noise model of `noise_file` (its aggregate) or `--laser-std`.
+    pub fn scans(
+        &self,
+        log: &CarmenLog,
+        resolution: f64,
+        noise_file: Option<&std::path::Path>,
+    ) -> Result<Vec<RangeScan>> {
+        let noise = match noise_file {
+            Some(path) => {
+                let n = NoiseModel::load(path)?;
+                NoiseModel::aggregate(n.bias, n.std)
+            }
+            None => NoiseModel::aggregate(Poly([0.0; 3]), Poly([self.laser_std, 0.0, 0.0])),
+        };
+        let noise = Some(Arc::new(noise));
+        let misses = if self.misses == "ignore" { Misses::Ignore } else { Misses::Free };
+        log.readings
+            .iter()
+            .step_by(self.scans_every as usize)
+            .enumerate()
+            .map(|(i, r)| {
+                r.to_scan(i, 0.5 * resolution, self.beams_every as usize, misses, noise.clone())
+                    .with_context(|| format!("{} line {}", log.path.display(), r.line))
+            })
+            .collect()
+    }
+}
+
 #[derive(clap::Args)]
 pub struct Args {
-    /// Dataset folder (TUM / ICL-NUIM layout with camera.toml).
+    /// Dataset folder (TUM / ICL-NUIM layout with camera.toml), or a CARMEN laser log file
+    /// (plain or .gz; a one-voxel-thick map at z = 0 to one voxel).
     dataset: PathBuf,
     /// Output map file.
     #[arg(short, long)]
@@ -121,6 +185,8 @@ pub struct Args {
     frames: Vec<usize>,
     #[command(flatten)]
     options: MapOptions,
+    #[command(flatten)]
+    laser: LaserOptions,
 }
 
 /// What a build did.
@@ -150,20 +216,38 @@ pub fn select_frames(len: usize, frames: &[usize], exclude: &[usize]) -> Result<
     Ok(chosen)
 }
 
-/// Integrates the frames `indices` (fetched through `frame`) with the engine `config`
+/// A reading an engine integrates: a depth image or a range scan.
+pub trait Reading {
+    /// Adds this reading's evidence to `engine`.
+    fn integrate_into(&self, engine: &mut dyn Engine) -> mrfmap::Result<()>;
+}
+
+impl Reading for Frame {
+    fn integrate_into(&self, engine: &mut dyn Engine) -> mrfmap::Result<()> {
+        engine.integrate(self)
+    }
+}
+
+impl Reading for RangeScan {
+    fn integrate_into(&self, engine: &mut dyn Engine) -> mrfmap::Result<()> {
+        engine.integrate_scan(self)
+    }
+}
+
+/// Integrates the readings `indices` (fetched through `reading`) with the engine `config`
 /// describes, with a progress bar.
-pub fn build_map(
+pub fn build_map<R: Reading>(
     indices: &[usize],
     config: &EngineConfig,
-    mut frame: impl FnMut(usize) -> mrfmap::Result<Frame>,
+    mut reading: impl FnMut(usize) -> mrfmap::Result<R>,
 ) -> Result<BuildReport> {
     let mut engine = new_engine(config)?;
     let bar = crate::progress::bar(indices.len() as u64, config.kind.name());
     let mut integrate_time = Duration::ZERO;
     for &i in indices {
-        let frame = frame(i)?;
+        let reading = reading(i)?;
         let t = Instant::now();
-        engine.integrate(&frame).with_context(|| format!("integrating frame {i}"))?;
+        reading.integrate_into(engine.as_mut()).with_context(|| format!("integrating reading {i}"))?;
         integrate_time += t.elapsed();
         bar.inc(1);
     }
@@ -187,16 +271,30 @@ pub fn run(a: Args) -> Result<()> {
         bail!("{}: the output folder {} does not exist", a.output.display(), folder.display());
     }
     let config = a.options.config(kind, a.resolution)?;
-    let dataset = a.options.open(&a.dataset)?;
-    let indices = select_frames(dataset.len(), &a.frames, &a.exclude)?;
-    tracing::info!(
-        "{}: {} of {} frames, engine {kind}, resolution {} m",
-        a.dataset.display(),
-        indices.len(),
-        dataset.len(),
-        a.resolution
-    );
-    let report = build_map(&indices, &config, |i| dataset.frame(i))?;
+    let report = if a.dataset.is_file() {
+        let log = a.laser.open(&a.dataset)?;
+        let scans = a.laser.scans(&log, a.resolution, a.options.noise.as_deref())?;
+        let indices = select_frames(scans.len(), &a.frames, &a.exclude)?;
+        tracing::info!(
+            "{}: {} of {} laser scans, engine {kind}, resolution {} m",
+            a.dataset.display(),
+            indices.len(),
+            log.readings.len(),
+            a.resolution
+        );
+        build_map(&indices, &config, |i| Ok(scans[i].clone()))?
+    } else {
+        let dataset = a.options.open(&a.dataset)?;
+        let indices = select_frames(dataset.len(), &a.frames, &a.exclude)?;
+        tracing::info!(
+            "{}: {} of {} frames, engine {kind}, resolution {} m",
+            a.dataset.display(),
+            indices.len(),
+            dataset.len(),
+            a.resolution
+        );
+        build_map(&indices, &config, |i| dataset.frame(i))?
+    };
     report.map.save(&a.output)?;
     println!(
         "{}: {} frames, {} voxels ({} occupied), {:.1} ms/frame",

@@ -1,15 +1,15 @@
-//! `mrfmap export`: map file to PLY, OctoMap and Foxglove (MCAP) files.
+//! `mrfmap export`: map file to PLY, OctoMap, Foxglove (MCAP) and ROS map_server files.
 
 use std::path::PathBuf;
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use mrfmap::map::Map;
 use mrfmap::outputs::{
-    OctomapFormat, PlyOptions, SCENE_TOPIC, SceneOptions, write_octomap, write_ply, write_scene_mcap,
+    OctomapFormat, PlyOptions, SCENE_TOPIC, SceneOptions, write_map_server, write_octomap, write_ply, write_scene_mcap,
 };
 
 #[derive(clap::Args)]
-#[command(group = clap::ArgGroup::new("outputs").required(true).multiple(true).args(["ply", "bt", "ot", "mcap"]))]
+#[command(group = clap::ArgGroup::new("outputs").required(true).multiple(true).args(["ply", "bt", "ot", "mcap", "grid2d"]))]
 pub struct Args {
     /// Map file written by `mrfmap build`.
     map: PathBuf,
@@ -29,7 +29,14 @@ pub struct Args {
     /// Foxglove opens.
     #[arg(long)]
     mcap: Option<PathBuf>,
-    /// MCAP: voxels above this occupancy become cubes.
+    /// Write a 2D occupancy grid in the ROS map_server format (YAML + PGM beside it) of all
+    /// the map's layers (for a 3D map's slab use `mrfmap project`).
+    #[arg(long, value_name = "OUT.yaml")]
+    grid2d: Option<PathBuf>,
+    /// grid2d: also write `<stem>-sigma.pgm`, the standard deviation per cell.
+    #[arg(long)]
+    sigma: bool,
+    /// MCAP and grid2d: voxels above this occupancy are occupied.
     #[arg(long, default_value_t = 0.5)]
     threshold: f32,
     /// MCAP: colour cubes by height, sigma or occupancy.
@@ -55,6 +62,19 @@ pub fn run(a: Args) -> Result<()> {
             let s = write_octomap(&map, path, format)?;
             println!("{}: {} nodes, {} leaves", path.display(), s.nodes, s.leaves);
         }
+    }
+    if let Some(path) = &a.grid2d {
+        let (lo, hi) = map.bounds().context("the map is empty: no grid to write")?;
+        let grid = map.project(lo[2], hi[2])?;
+        let f = write_map_server(&grid, path, a.threshold, a.sigma)?;
+        let [occ, free, unknown] = f.counts;
+        println!(
+            "{} and {}: {} x {} cells, {occ} occupied, {free} free, {unknown} unknown",
+            path.display(),
+            f.image.display(),
+            grid.width,
+            grid.height
+        );
     }
     if let Some(path) = &a.mcap {
         let options =

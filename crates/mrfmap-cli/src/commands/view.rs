@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
 use mrfmap::map::Map;
-use mrfmap::outputs::{View, render_map, slice_map};
+use mrfmap::outputs::{View, render_grid2d, render_map, slice_map};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -53,7 +53,12 @@ pub fn run(a: Args) -> Result<()> {
     if map.voxels.is_empty() {
         bail!("{}: the map is empty: nothing to show", a.map.display());
     }
-    let canvas = if let Some(slice) = &a.slice {
+    let (lo, hi) = map.bounds().expect("map is not empty");
+    let planar = hi[2] - lo[2] < 1.5 * map.resolution();
+    let canvas = if planar && a.slice.is_none() && a.eye.is_none() && a.target.is_none() {
+        // A one-layer map (a planar laser's): the grid itself, with its sigma.
+        render_grid2d(&map.project(lo[2], hi[2])?, 1600)
+    } else if let Some(slice) = &a.slice {
         let (axis, value) =
             slice.split_once('=').with_context(|| format!("--slice {slice:?}: need AXIS=VALUE, e.g. z=0.5"))?;
         let axis = match axis.trim() {

@@ -367,18 +367,17 @@ impl CrmEngine {
     /// Multiplies a frame's factors into the pdfs, brick by brick in parallel.
     fn apply(&mut self, updates: FrameUpdates) {
         let k = self.particles();
-        for (key, _) in updates.bricks.iter() {
-            self.bricks.entry(*key).or_insert_with(CrmBrick::new);
-        }
+        // The frame's bricks leave the map for the update and come back after it: finding them
+        // by walking the whole map per frame cost a quarter of a laser log's build once the
+        // map held 100k bricks.
+        let mut work: Vec<(BrickKey, CrmBrick, FrameBrick)> = updates
+            .bricks
+            .into_items()
+            .into_iter()
+            .map(|(key, fb)| (key, self.bricks.remove(&key).unwrap_or_else(CrmBrick::new), fb))
+            .collect();
         let (grid, powers) = (&self.grid, &self.powers);
-        let mut by_key: FxHashMap<BrickKey, FrameBrick> = updates.bricks.into_items().into_iter().collect();
-        let mut work: Vec<(&mut CrmBrick, FrameBrick)> = Vec::with_capacity(by_key.len());
-        for (key, brick) in self.bricks.iter_mut() {
-            if let Some(fb) = by_key.remove(key) {
-                work.push((brick, fb));
-            }
-        }
-        work.into_par_iter().for_each(|(brick, mut fb)| {
+        work.par_iter_mut().for_each(|(_, brick, fb)| {
             // Factors grouped by slot, ray order kept within a slot.
             fb.factors.sort_by_key(|f| f.0);
             let mut touched = [0u64; 8];
@@ -435,6 +434,9 @@ impl CrmEngine {
                 brick.means[i] = mean;
             }
         });
+        for (key, brick, _) in work {
+            self.bricks.insert(key, brick);
+        }
     }
 }
 

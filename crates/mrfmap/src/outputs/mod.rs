@@ -40,7 +40,7 @@ pub use query::{
     box_voxel_count, for_each_in_box, query_box, query_point, query_points, query_polyline, query_segment,
     query_segments,
 };
-pub use render::{Colouring, View, render_map, slice_map};
+pub use render::{Colouring, View, render_grid2d, render_map, slice_map};
 pub use truth::{
     TruthMetrics, VoxelTruth, grid_world_truths, mean_sigma, metrics_of, pearson, roc_auc, true_occupancy,
     truth_metrics, voxel_truths,

@@ -1,6 +1,7 @@
 //! Looking at maps without a viewer: a ray-cast picture of the occupied voxels from any
 //! viewpoint ([`render_map`]), coloured by height, sigma or occupancy, and axis-aligned slices
-//! of occupancy ([`slice_map`]). Both return a [`Canvas`] to save as PNG.
+//! of occupancy ([`slice_map`]), and 2D grids with their sigma ([`render_grid2d`]). All return
+//! a [`Canvas`] to save as PNG.
 
 use std::ops::ControlFlow;
 
@@ -10,7 +11,7 @@ use super::canvas::{Canvas, Rgb};
 use super::pictures::viridis;
 use super::truth::mean_sigma;
 use crate::error::{Error, Result};
-use crate::map::{Map, MapVoxel, VoxelKey};
+use crate::map::{Grid2d, Map, MapVoxel, VoxelKey};
 use crate::rays::{Aabb, for_each_crossing};
 
 /// What the colour of a rendered voxel says.
@@ -215,4 +216,40 @@ pub fn slice_map(map: &Map, axis: usize, value: f64) -> Result<Canvas> {
         c.fill(x, y, x + scale, y + scale, viridis(p as f64));
     }
     Ok(c)
+}
+
+/// A 2D occupancy grid as a picture: occupancy (viridis 0 to 1) and sigma (viridis 0 to 0.5)
+/// side by side, unknown grey, north up. Grids larger than `max_side` cells on a side are
+/// shown in blocks, each pixel the most occupied (and most uncertain) cell of its block, so
+/// thin walls stay visible.
+pub fn render_grid2d(grid: &Grid2d, max_side: u32) -> Canvas {
+    let block = grid.width.max(grid.height).div_ceil(max_side.max(1) as usize).max(1);
+    let (w, h) = (grid.width.div_ceil(block), grid.height.div_ceil(block));
+    let scale = (600 / w.max(h)).clamp(1, 8) as i64;
+    let (pw, ph) = (w as i64 * scale, h as i64 * scale);
+    let (top, gap) = (28i64, 16i64);
+    let mut c = Canvas::new((2 * pw + gap) as u32, (ph + top) as u32);
+    c.text(0, 8, "OCCUPANCY 0 TO 1", 1, [0, 0, 0]);
+    c.text(pw + gap, 8, "SIGMA 0 TO 0.5", 1, [0, 0, 0]);
+    for bj in 0..h {
+        for bi in 0..w {
+            // The block's most occupied and most uncertain known cells.
+            let mut cell: Option<(f32, f32)> = None;
+            for j in bj * block..((bj + 1) * block).min(grid.height) {
+                for i in bi * block..((bi + 1) * block).min(grid.width) {
+                    if let Some((p, s)) = grid.cell(i, j) {
+                        cell = Some(cell.map_or((p, s), |(q, t)| (q.max(p), t.max(s))));
+                    }
+                }
+            }
+            let (x, y) = (bi as i64 * scale, top + (h - 1 - bj) as i64 * scale);
+            let (occ, sig) = match cell {
+                Some((p, s)) => (viridis(p as f64), viridis(s as f64 / 0.5)),
+                None => ([215, 215, 215], [215, 215, 215]),
+            };
+            c.fill(x, y, x + scale, y + scale, occ);
+            c.fill(pw + gap + x, y, pw + gap + x + scale, y + scale, sig);
+        }
+    }
+    c
 }

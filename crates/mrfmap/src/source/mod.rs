@@ -3,14 +3,17 @@
 //! [`Dataset`] reads the TUM / ICL-NUIM layout; [`Scene`] describes an analytic world and
 //! [`simulate`] renders it into that same layout, so simulated and real data take one path.
 //! [`GridWorld`] is a planar world of cells with a simulated range scanner, for 2D
-//! experiments (it produces [`crate::frames::RangeScan`]s, not depth images).
+//! experiments (it produces [`crate::frames::RangeScan`]s, not depth images). [`CarmenLog`]
+//! reads real planar-laser logs (CARMEN format, plain or gzip) into range scans.
 
+mod carmen;
 mod dataset;
 mod depth_png;
 mod grid_world;
 mod scene;
 mod simulate;
 
+pub use carmen::{BeamSpacing, CarmenLog, CarmenOptions, LaserReading, Misses};
 pub use dataset::{Dataset, DatasetOptions, FrameInfo};
 pub use depth_png::{read_depth_png, write_depth_png};
 pub use grid_world::GridWorld;

@@ -661,3 +661,85 @@ fn query_json_contract_and_map_operations() {
     assert_eq!(cell(-0.29, 0.02), Some(true), "the box");
     assert_eq!(cell(-1.0, 0.02), Some(false), "free space in front of it");
 }
+
+/// A CARMEN log of a 4 m x 4 m square room seen from three poses (FLASER, 180 beams, pi/n
+/// apart), with one no-return beam per scan.
+fn square_room_log(dir: &Path) -> PathBuf {
+    let mut text = String::from("# synthetic\nPARAM robot_frontlaser_offset 0.0 nohost 0\n");
+    for (i, [x, y, theta]) in [[0.0, 0.0, 0.0], [0.5, 0.3, 1.0], [-0.6, -0.4, 2.0], [0.2, -0.5, 4.0]].iter().enumerate()
+    {
+        text.push_str(&format!("ODOM {x} {y} {theta} 0 0 0 {i} h {i}\nFLASER 180"));
+        for k in 0..180 {
+            let a = theta - std::f64::consts::FRAC_PI_2 + k as f64 * std::f64::consts::PI / 180.0;
+            let (dx, dy) = (a.cos(), a.sin());
+            let t = [(2.0 - x) / dx, (-2.0 - x) / dx, (2.0 - y) / dy, (-2.0 - y) / dy]
+                .into_iter()
+                .filter(|t| *t > 0.0)
+                .fold(f64::INFINITY, f64::min);
+            let r = if k == 90 { 81.83 } else { t };
+            text.push_str(&format!(" {r:.3}"));
+        }
+        text.push_str(&format!(" {x} {y} {theta} {x} {y} {theta} {i}.5 host {i}.5\nNEFF 10\n"));
+    }
+    let path = dir.join("room.log");
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+#[test]
+fn laser_log_build_grid2d_view_and_experiment() {
+    let dir = workdir("laser");
+    let log = square_room_log(&dir);
+    let map = dir.join("room.mrfmap");
+    for engine in ["logodds", "crm"] {
+        let o = run(&["build", s(&log), "--engine", engine, "--resolution", "0.05", "-o", s(&map), "-q"]);
+        assert!(o.status.success() && stdout(&o).contains("4 frames"), "{}{}", stdout(&o), stderr(&o));
+        let yaml = dir.join(format!("{engine}.yaml"));
+        let o = run(&["export", s(&map), "--grid2d", s(&yaml), "--sigma"]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        assert!(dir.join(format!("{engine}-sigma.pgm")).is_file());
+        let g = mrfmap::outputs::read_map_server(&yaml).unwrap();
+        let cell = |x: f64, y: f64| {
+            let (i, j) = (((x - g.origin[0]) / g.resolution) as usize, ((y - g.origin[1]) / g.resolution) as usize);
+            g.cells[j * g.width + i]
+        };
+        // Ranges are written to the millimetre, so a wall's hits land on either side of it.
+        let wall = |x: f64, y: f64| cell(x - 0.01, y) == Some(true) || cell(x + 0.01, y) == Some(true);
+        assert!(wall(2.0, 0.52), "{engine}: the east wall");
+        assert!(wall(-2.0, -0.27), "{engine}: the west wall");
+        assert_eq!(cell(0.8, 0.1), Some(false), "{engine}: the room");
+        // The picture of a one-layer map is the 2D grid with its sigma, no camera needed.
+        let png = dir.join(format!("{engine}.png"));
+        let o = run(&["view", s(&map), "-o", s(&png)]);
+        assert!(o.status.success() && png.is_file(), "{}", stderr(&o));
+    }
+    // The MRF takes depth images only.
+    let o = run(&["build", s(&log), "--engine", "mrf", "--resolution", "0.05", "-o", s(&map)]);
+    assert!(!o.status.success() && stderr(&o).contains("depth images only"), "{}", stderr(&o));
+
+    // The experiment runs end to end and writes its report and pictures.
+    let out = dir.join("exp");
+    let o = run(&["experiment", "crm-laser", s(&log), "-o", s(&out), "--subset", "3", "--repeat", "1"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let report = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(report.contains("## Results") && report.contains("CRM, 101 particles") && report.contains("pi / (n - 1)"));
+    for png in ["reference.png", "crm.png", "crm15.png", "logodds-paper-ism.png"] {
+        assert!(out.join(png).is_file(), "{png}");
+    }
+
+    // A bad line names the file and the line; nothing is written.
+    let bad = dir.join("bad.log");
+    std::fs::write(
+        &bad,
+        "ODOM 0 0 0 0 0 0 0 h 0\nFLASER 2 1.0 1.5 0 0 0 0 0 0 1 h 1\nFLASER 2 1.0 -1.5 0 0 0 0 0 0 2 h 2\n",
+    )
+    .unwrap();
+    let out_map = dir.join("bad.mrfmap");
+    let o = run(&["build", s(&bad), "--resolution", "0.05", "-o", s(&out_map)]);
+    let err = stderr(&o);
+    assert!(
+        !o.status.success() && err.contains("bad.log") && err.contains("line 3") && err.contains("negative"),
+        "{err}"
+    );
+    assert!(!out_map.exists());
+}

@@ -94,3 +94,31 @@ fn logodds_matches_octomap_occupied_counts() {
         assert!(differ * 100_000 <= a.len(), "{differ} of {} voxels differ", a.len());
     }
 }
+
+#[test]
+fn intel_lab_log_reads_and_maps_the_lab() {
+    use mrfmap::inference::CrmEngine;
+    use mrfmap::source::{CarmenLog, CarmenOptions, Misses};
+    let Some(root) = shared("intel-lab") else {
+        return;
+    };
+    let log = CarmenLog::open(&root.join("intel-corrected.log.gz"), CarmenOptions::default()).unwrap();
+    assert_eq!(log.readings.len(), 910);
+    assert!(log.readings.iter().all(|r| r.message == "FLASER" && r.ranges.len() == 180));
+    let mut crm = CrmEngine::new(0.1, Default::default(), Default::default()).unwrap();
+    let mut lo = LogOddsEngine::new(0.1, Default::default(), LogOddsParams::default()).unwrap();
+    for (i, r) in log.readings.iter().enumerate() {
+        let scan = r.to_scan(i, 0.05, 1, Misses::Ignore, None).unwrap();
+        crm.integrate_scan(&scan).unwrap();
+        lo.integrate_scan(&scan).unwrap();
+    }
+    // The lab is about 30 m x 30 m; without misses nothing reaches much beyond it.
+    for map in [crm.map(), lo.map()] {
+        let (min, max) = map.bounds().unwrap();
+        assert!((max[0] - min[0]) < 60.0 && (max[1] - min[1]) < 60.0, "{min:?} {max:?}");
+        assert_eq!((min[2], max[2]), (0.0, 0.1), "one layer");
+        // Walls are a small share of the known cells, as in any floor plan.
+        let share = map.occupied_count() as f64 / map.voxels.len() as f64;
+        assert!(share > 0.02 && share < 0.2, "{} occupied share {share}", map.engine);
+    }
+}

@@ -1,5 +1,6 @@
-//! `mrfmap bench`: per-frame integration time at several resolutions, frames preloaded so
-//! only the engine is timed. Build with `--release`; the peer script compares it with OctoMap.
+//! `mrfmap bench`: per-frame integration time at several resolutions, frames (or a laser
+//! log's scans) preloaded so only the engine is timed. Build with `--release`; the peer script
+//! compares it with OctoMap.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -7,12 +8,13 @@ use std::time::Instant;
 use anyhow::Result;
 use mrfmap::inference::{CrmParams, EngineConfig, EngineKind, LogOddsParams, MrfEngine, MrfParams, new_engine};
 
-use super::build::marking;
+use super::build::{LaserOptions, Reading, marking};
+use mrfmap::frames::Frame;
 use mrfmap::source::Dataset;
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// Dataset folder.
+    /// Dataset folder, or a CARMEN laser log file.
     dataset: PathBuf,
     /// Engine to time.
     #[arg(long, default_value = "logodds")]
@@ -33,10 +35,12 @@ pub struct Args {
     /// Log-odds only: find crossed voxels by projection or by walking every ray.
     #[arg(long, default_value = "project", value_parser = ["project", "walk"])]
     marking: String,
+    #[command(flatten)]
+    laser: LaserOptions,
 }
 
 /// Time to add the last frame to an inferred MRF of the others and run 3 iterations.
-fn incremental_mrf(frames: &[mrfmap::frames::Frame], resolution: f64, repeat: u32) -> Result<f64> {
+fn incremental_mrf(frames: &[Frame], resolution: f64, repeat: u32) -> Result<f64> {
     let (last, rest) = frames.split_last().ok_or_else(|| anyhow::anyhow!("no frames"))?;
     let mut engine = MrfEngine::new(resolution, Default::default(), MrfParams::default())?;
     for f in rest {
@@ -56,24 +60,49 @@ fn incremental_mrf(frames: &[mrfmap::frames::Frame], resolution: f64, repeat: u3
 
 pub fn run(a: Args) -> Result<()> {
     let kind: EngineKind = a.engine.parse()?;
+    if a.incremental && kind != EngineKind::Mrf {
+        anyhow::bail!("--incremental is for --engine mrf");
+    }
+    if a.dataset.is_file() {
+        if a.incremental {
+            anyhow::bail!("--incremental needs a depth dataset, not a laser log");
+        }
+        let log = a.laser.open(&a.dataset)?;
+        // Scans depend on the resolution only through their height (the middle of layer 0).
+        let scans = |r: f64| a.laser.scans(&log, r, None);
+        return table(&a, kind, scans(a.resolutions[0])?.len(), "scans", |r| scans(r), |_, _| Ok(String::new()));
+    }
     let dataset = Dataset::open(&a.dataset)?;
     let frames = (0..dataset.len()).map(|i| dataset.frame(i)).collect::<mrfmap::Result<Vec<_>>>()?;
+    let incremental = |frames: &[Frame], r: f64| -> Result<String> {
+        Ok(if a.incremental { format!("\t{:.0}", incremental_mrf(frames, r, a.repeat)? * 1e3) } else { String::new() })
+    };
+    table(&a, kind, frames.len(), "frames", |_| Ok(frames.clone()), incremental)
+}
+
+/// Prints the table: per resolution the best time per reading of a full build, the map's
+/// size, and `extra`'s columns.
+fn table<R: Reading>(
+    a: &Args,
+    kind: EngineKind,
+    count: usize,
+    what: &str,
+    readings: impl Fn(f64) -> Result<Vec<R>>,
+    extra: impl Fn(&[R], f64) -> Result<String>,
+) -> Result<()> {
     println!(
-        "# {} frames of {}, engine {kind}{}, {} threads, best of {}",
-        frames.len(),
+        "# {count} {what} of {}, engine {kind}{}, {} threads, best of {}",
         a.dataset.display(),
         if kind == EngineKind::LogOdds { format!(" (marking: {})", a.marking) } else { String::new() },
         rayon::current_num_threads(),
         a.repeat
     );
-    if a.incremental && kind != EngineKind::Mrf {
-        anyhow::bail!("--incremental is for --engine mrf");
-    }
     println!(
         "resolution\tms_per_frame\toccupied\tvoxels\tmemory_mib{}",
         if a.incremental { "\tincremental_ms" } else { "" }
     );
     for &resolution in &a.resolutions {
+        let items = readings(resolution)?;
         let mut best = f64::INFINITY;
         let mut last = None;
         for _ in 0..a.repeat.max(1) {
@@ -84,25 +113,21 @@ pub fn run(a: Args) -> Result<()> {
             };
             let mut engine = new_engine(&config)?;
             let t = Instant::now();
-            for f in &frames {
-                engine.integrate(f)?;
+            for item in &items {
+                item.integrate_into(engine.as_mut())?;
             }
             engine.finish()?;
             best = best.min(t.elapsed().as_secs_f64());
             last = Some(engine.map());
         }
         let map = last.expect("at least one run");
-        let incremental = if a.incremental {
-            format!("\t{:.0}", incremental_mrf(&frames, resolution, a.repeat)? * 1e3)
-        } else {
-            String::new()
-        };
         println!(
-            "{resolution}\t{:.2}\t{}\t{}\t{:.1}{incremental}",
-            best * 1e3 / frames.len() as f64,
+            "{resolution}\t{:.2}\t{}\t{}\t{:.1}{}",
+            best * 1e3 / items.len() as f64,
             map.occupied_count(),
             map.voxels.len(),
-            map.voxels.memory_bytes() as f64 / (1 << 20) as f64
+            map.voxels.memory_bytes() as f64 / (1 << 20) as f64,
+            extra(&items, resolution)?
         );
     }
     Ok(())

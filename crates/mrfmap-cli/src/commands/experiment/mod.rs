@@ -67,7 +67,7 @@ impl Method {
         match self {
             Method::Crm(k) => format!("CRM, {k} particles ({} B/voxel)", 4 * (k + 1)),
             Method::LogOdds(SensorModel::Ramp { q_low, q_high, r_ramp, r_top }) => {
-                format!("log-odds, ramp ISM q = {q_low}/{q_high}, r_ramp {r_ramp}, r_top {r_top}")
+                format!("log-odds, ramp ISM q = {q_low:.2}/{q_high:.2}, r_ramp {r_ramp}, r_top {r_top}")
             }
             Method::LogOdds(m) => format!("log-odds {m:?}"),
         }

@@ -14,9 +14,13 @@ struct Cli {
     /// No progress bars and no log lines below warnings.
     #[arg(long, short, global = true)]
     quiet: bool,
-    /// Worker threads (default: all cores).
-    #[arg(long, global = true, value_parser = clap::value_parser!(u32).range(1..))]
+    /// Worker threads (default: all cores; at most 1024).
+    #[arg(long, global = true, value_parser = clap::value_parser!(u32).range(1..=1024))]
     threads: Option<u32>,
+    /// Memory a command may plan to use, e.g. 8G (default: MRFMAP_MAX_MEMORY, else three
+    /// quarters of physical memory). Work whose estimate is larger is refused before it starts.
+    #[arg(long, global = true, value_parser = |s: &str| mrfmap::limits::parse_bytes(s).map_err(|e| e.to_string()))]
+    max_memory: Option<u64>,
     #[command(subcommand)]
     command: Command,
 }
@@ -66,14 +70,35 @@ enum Command {
 }
 
 fn main() {
-    let cli = Cli::parse();
+    // Argument errors exit 1 with the same prefix as every other error (clap's own exit code
+    // is 2); help and version still print to stdout and exit 0.
+    let cli = match Cli::try_parse() {
+        Ok(cli) => cli,
+        Err(e) if e.use_stderr() => {
+            let text = e.render().to_string();
+            eprintln!("mrfmap: {}", text.trim_end());
+            std::process::exit(1);
+        }
+        Err(e) => e.exit(),
+    };
     let default_level = if cli.quiet { "warn" } else { "info" };
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default_level));
-    tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).with_target(false).init();
+    // Colour only for a terminal, and never with NO_COLOR set (https://no-color.org).
+    use std::io::IsTerminal;
+    let ansi = std::io::stderr().is_terminal() && std::env::var_os("NO_COLOR").is_none_or(|v| v.is_empty());
+    tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .with_target(false)
+        .with_ansi(ansi)
+        .init();
     progress::set_quiet(cli.quiet);
 
     let result = (|| {
+        if let Some(bytes) = cli.max_memory {
+            mrfmap::limits::set_max_memory(bytes);
+        }
         if let Some(n) = cli.threads {
             rayon::ThreadPoolBuilder::new().num_threads(n as usize).build_global()?;
         }

@@ -309,7 +309,7 @@ fn bad_dataset_files_give_clear_errors() {
     std::fs::write(data.join("depth.txt"), &depth_list).unwrap();
 
     // Bad arguments.
-    build_fails(&data, &["--engine", "octopus"], &["unknown engine", "logodds"]);
+    build_fails(&data, &["--engine", "octopus"], &["invalid value 'octopus'", "logodds, mrf, crm"]);
     build_fails(&data, &["--exclude", "9"], &["frame index 9", "4 frames"]);
     build_fails(&data, &["--bounds", "1,2,3"], &["bounds"]);
     std::fs::write(dir.join("noise-bad.toml"), "bias = [0.0]\nstd = [0.01]\ncolour = 3\n").unwrap();
@@ -742,4 +742,57 @@ fn laser_log_build_grid2d_view_and_experiment() {
         "{err}"
     );
     assert!(!out_map.exists());
+}
+
+#[test]
+fn runaway_work_is_refused_before_it_starts_and_argument_errors_look_like_errors() {
+    let dir = workdir("limits");
+    let data = dataset(&dir);
+    let out = dir.join("m.mrfmap");
+    // A resolution no machine can hold: refused at once, with the estimate and a way out.
+    let t = std::time::Instant::now();
+    let o = run(&["build", s(&data), "-o", s(&out), "--resolution", "1e-9"]);
+    let err = stderr(&o);
+    assert!(!o.status.success() && err.contains("would need about") && err.contains("--resolution"), "{err}");
+    assert!(t.elapsed().as_secs() < 20 && !out.exists());
+    // The limit is settable; a small one refuses an ordinary build.
+    let o = run(&["--max-memory", "1M", "build", s(&data), "-o", s(&out), "--resolution", "0.05"]);
+    assert!(!o.status.success() && stderr(&o).contains("limit of 1.0 MiB"), "{}", stderr(&o));
+    let o = run(&["build", s(&data), "-o", s(&out), "--resolution", "0.05", "--engine", "mrf", "--max-memory", "lots"]);
+    assert!(!o.status.success() && stderr(&o).contains("memory size \"lots\""), "{}", stderr(&o));
+    // A voxel larger than the scene: built, with a warning (and no colour codes off a terminal).
+    let o = run(&["build", s(&data), "-o", s(&out), "--resolution", "1e9"]);
+    let err = stderr(&o);
+    assert!(o.status.success() && err.contains("larger than everything the sensors saw"), "{err}");
+    assert!(!err.contains('\u{1b}'), "escape codes in {err:?}");
+    // Argument errors: exit 1 and the usual prefix, like every other error.
+    for args in [vec!["--threads", "100000", "info", s(&out)], vec!["build", s(&data)], vec!["frobnicate"]] {
+        let o = run(&args);
+        assert_eq!(o.status.code(), Some(1), "{args:?}");
+        assert!(stderr(&o).starts_with("mrfmap: error:"), "{args:?}: {}", stderr(&o));
+    }
+    assert!(run(&["--help"]).status.success());
+    // A simulated camera no sensor has, and a noise model with a negative std.
+    let scene = dir.join("huge.toml");
+    std::fs::write(&scene, SCENE.replace("width = 80", "width = 100000000")).unwrap();
+    let o = run(&["simulate", s(&scene), s(&dir.join("huge"))]);
+    assert!(!o.status.success() && stderr(&o).contains("larger than any depth sensor"), "{}", stderr(&o));
+    assert!(!dir.join("huge").exists(), "nothing left behind");
+    let noise = dir.join("noise.toml");
+    std::fs::write(&noise, "bias = [0.0]\nstd = [-0.01]\n").unwrap();
+    let o = run(&["build", s(&data), "-o", s(&out), "--resolution", "0.05", "--noise", s(&noise), "--engine", "crm"]);
+    assert!(
+        !o.status.success() && stderr(&o).contains("noise.toml") && stderr(&o).contains("not positive"),
+        "{}",
+        stderr(&o)
+    );
+    // Small things: the demo into a file, a zero field of view, eval on a view the map saw.
+    let o = run(&["demo", s(&noise)]);
+    assert!(!o.status.success() && stderr(&o).contains("not a folder"), "{}", stderr(&o));
+    let held = dir.join("held.mrfmap");
+    assert!(run(&["build", s(&data), "-o", s(&held), "--resolution", "0.05", "--exclude", "1"]).status.success());
+    let o = run(&["view", s(&held), "-o", s(&dir.join("v.png")), "--fov", "0"]);
+    assert!(!o.status.success() && stderr(&o).contains("between 0 and 179"), "{}", stderr(&o));
+    let o = run(&["eval", s(&held), s(&data), "--views", "0,1"]);
+    assert!(o.status.success() && stderr(&o).contains("views [0] were used to build this map"), "{}", stderr(&o));
 }

@@ -37,6 +37,7 @@ pub mod atomic_file;
 mod error;
 pub mod frames;
 pub mod inference;
+pub mod limits;
 pub mod map;
 pub mod outputs;
 pub mod random;

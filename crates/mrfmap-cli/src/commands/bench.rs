@@ -16,8 +16,8 @@ use mrfmap::source::Dataset;
 pub struct Args {
     /// Dataset folder, or a CARMEN laser log file.
     dataset: PathBuf,
-    /// Engine to time.
-    #[arg(long, default_value = "logodds")]
+    /// Engine to time: logodds, mrf or crm.
+    #[arg(long, default_value = "logodds", value_parser = ["logodds", "mrf", "crm"])]
     engine: String,
     /// Resolutions (metres).
     #[arg(long, value_delimiter = ',', default_values_t = [0.05, 0.02, 0.01])]

@@ -9,9 +9,10 @@ use std::sync::Arc;
 
 use mrfmap::frames::{Frame, NoiseModel, Poly, RangeScan};
 use mrfmap::inference::{
-    Aggregation, Allocation, CrmParams, Engine, EngineConfig, EngineKind, KeyframeSelection, LogOddsParams, Marking,
-    MrfParams, new_engine,
+    Aggregation, Allocation, CrmParams, Engine, EngineConfig, EngineKind, Extent, KeyframeSelection, LogOddsParams,
+    Marking, MrfParams, estimate_memory, new_engine,
 };
+use mrfmap::limits;
 use mrfmap::map::Map;
 use mrfmap::rays::{Aabb, RayLimits};
 use mrfmap::source::{BeamSpacing, CarmenLog, CarmenOptions, Dataset, Misses};
@@ -171,8 +172,8 @@ pub struct Args {
     /// Output map file.
     #[arg(short, long)]
     output: PathBuf,
-    /// Inference engine.
-    #[arg(long, default_value = "logodds")]
+    /// Inference engine: logodds, mrf or crm.
+    #[arg(long, default_value = "logodds", value_parser = ["logodds", "mrf", "crm"])]
     engine: String,
     /// Voxel edge in metres.
     #[arg(long, value_parser = super::positive, allow_hyphen_values = true)]
@@ -234,6 +235,108 @@ impl Reading for RangeScan {
     }
 }
 
+/// `0-5,7,9-11` for the sorted indices.
+pub fn format_ranges(indices: &[usize]) -> String {
+    let mut sorted = indices.to_vec();
+    sorted.sort_unstable();
+    sorted.dedup();
+    let mut parts = Vec::new();
+    let mut i = 0;
+    while i < sorted.len() {
+        let mut j = i;
+        while j + 1 < sorted.len() && sorted[j + 1] == sorted[j] + 1 {
+            j += 1;
+        }
+        parts.push(if i == j { sorted[i].to_string() } else { format!("{}-{}", sorted[i], sorted[j]) });
+        i = j + 1;
+    }
+    parts.join(",")
+}
+
+/// The indices of [`format_ranges`]' text (malformed parts are skipped).
+pub fn parse_ranges(text: &str) -> Vec<usize> {
+    text.split(',')
+        .flat_map(|part| match part.split_once('-') {
+            Some((a, b)) => match (a.parse::<usize>(), b.parse::<usize>()) {
+                (Ok(a), Ok(b)) if b >= a && b - a < 10_000_000 => (a..=b).collect(),
+                _ => Vec::new(),
+            },
+            None => part.parse().ok().into_iter().collect(),
+        })
+        .collect()
+}
+
+/// Pixels (per side) between the sampled pixels of the memory estimate.
+const SAMPLE_STRIDE: u32 = 8;
+/// Frames decoded for the memory estimate, at most.
+const SAMPLE_FRAMES: usize = 8;
+
+/// Where the frames `indices` of `dataset` look, estimated from every pose and the end points
+/// of a sample of pixels of a few frames (decoding every frame twice would double the I/O).
+pub fn dataset_extent(dataset: &Dataset, indices: &[usize], config: &EngineConfig) -> Result<Option<Extent>> {
+    let step = indices.len().div_ceil(SAMPLE_FRAMES).max(1);
+    let sampled: Vec<usize> = indices.iter().copied().step_by(step).collect();
+    let cam = *dataset.camera();
+    let max_range = config.limits.max_range.unwrap_or(f64::INFINITY);
+    let mut points: Vec<[f64; 3]> =
+        indices.iter().map(|&i| dataset.frames()[i].pose.translation.vector.into()).collect();
+    let mut length = 0.0;
+    let mut surfaces = Vec::new();
+    for &i in &sampled {
+        let frame = dataset.frame(i)?;
+        let mut surface = Vec::new();
+        for v in (0..cam.height).step_by(SAMPLE_STRIDE as usize) {
+            for u in (0..cam.width).step_by(SAMPLE_STRIDE as usize) {
+                if let Some(z) = frame.depth.get(u, v) {
+                    let ray = cam.pixel_ray(u as f64, v as f64);
+                    let range = (ray.norm() * z as f64).min(max_range);
+                    length += range;
+                    let end: [f64; 3] = (frame.pose * nalgebra::Point3::from(ray.normalize() * range)).coords.into();
+                    points.push(end);
+                    surface.push(end);
+                }
+            }
+        }
+        surfaces.push(surface);
+    }
+    let scale = (SAMPLE_STRIDE * SAMPLE_STRIDE) as f64 * indices.len() as f64 / sampled.len().max(1) as f64;
+    Ok(Extent::new(points, length * scale, config).map(|e| e.with_surface(&surfaces, config.resolution)))
+}
+
+/// Where laser scans look: every beam's end point (misses at the maximum range).
+pub fn scan_extent(scans: &[RangeScan], config: &EngineConfig) -> Option<Extent> {
+    let mut points = Vec::new();
+    let mut length = 0.0;
+    for s in scans {
+        points.push(s.pose.translation.vector.into());
+        for b in &s.beams {
+            let r = b.range.unwrap_or(s.max_range).min(config.limits.max_range.unwrap_or(f64::INFINITY));
+            length += r;
+            let d = nalgebra::Vector3::from(b.dir) * r;
+            points.push((s.pose * nalgebra::Point3::from(d)).coords.into());
+        }
+    }
+    Extent::new(points, length, config)
+}
+
+/// Refuses a build whose memory estimate is over the limit, and warns when a voxel is larger
+/// than everything the sensors saw.
+pub fn check_build(config: &EngineConfig, extent: Option<Extent>, readings: usize) -> Result<()> {
+    let Some(extent) = extent else { return Ok(()) };
+    let what = format!("a {} map at {} m", config.kind, config.resolution);
+    let estimate = estimate_memory(config, &extent, readings);
+    tracing::debug!("{what}: memory estimate {}", limits::human(estimate));
+    limits::check_memory(&what, estimate, "use a coarser --resolution, or map less with --bounds or --max-range")?;
+    if config.resolution > extent.size() {
+        tracing::warn!(
+            "a {} m voxel is larger than everything the sensors saw ({:.2} m across): the map will be a few voxels",
+            config.resolution,
+            extent.size()
+        );
+    }
+    Ok(())
+}
+
 /// Integrates the readings `indices` (fetched through `reading`) with the engine `config`
 /// describes, with a progress bar.
 pub fn build_map<R: Reading>(
@@ -271,10 +374,12 @@ pub fn run(a: Args) -> Result<()> {
         bail!("{}: the output folder {} does not exist", a.output.display(), folder.display());
     }
     let config = a.options.config(kind, a.resolution)?;
-    let report = if a.dataset.is_file() {
+    let (report, indices_used) = if a.dataset.is_file() {
         let log = a.laser.open(&a.dataset)?;
         let scans = a.laser.scans(&log, a.resolution, a.options.noise.as_deref())?;
         let indices = select_frames(scans.len(), &a.frames, &a.exclude)?;
+        let chosen: Vec<RangeScan> = indices.iter().map(|&i| scans[i].clone()).collect();
+        check_build(&config, scan_extent(&chosen, &config), chosen.len())?;
         tracing::info!(
             "{}: {} of {} laser scans, engine {kind}, resolution {} m",
             a.dataset.display(),
@@ -282,10 +387,11 @@ pub fn run(a: Args) -> Result<()> {
             log.readings.len(),
             a.resolution
         );
-        build_map(&indices, &config, |i| Ok(scans[i].clone()))?
+        (build_map(&indices, &config, |i| Ok(scans[i].clone()))?, indices)
     } else {
         let dataset = a.options.open(&a.dataset)?;
         let indices = select_frames(dataset.len(), &a.frames, &a.exclude)?;
+        check_build(&config, dataset_extent(&dataset, &indices, &config)?, indices.len())?;
         tracing::info!(
             "{}: {} of {} frames, engine {kind}, resolution {} m",
             a.dataset.display(),
@@ -293,15 +399,19 @@ pub fn run(a: Args) -> Result<()> {
             dataset.len(),
             a.resolution
         );
-        build_map(&indices, &config, |i| dataset.frame(i))?
+        (build_map(&indices, &config, |i| dataset.frame(i))?, indices)
     };
-    report.map.save(&a.output)?;
+    let mut map = report.map;
+    // What went in, so `eval` can tell held-out views from views the map was built from.
+    map.params.insert("source".into(), a.dataset.display().to_string());
+    map.params.insert("frames".into(), format_ranges(&indices_used));
+    map.save(&a.output)?;
     println!(
         "{}: {} frames, {} voxels ({} occupied), {:.1} ms/frame",
         a.output.display(),
         report.frames,
-        report.map.voxels.len(),
-        report.map.occupied_count(),
+        map.voxels.len(),
+        map.occupied_count(),
         report.integrate_time.as_secs_f64() * 1e3 / report.frames as f64
     );
     Ok(())

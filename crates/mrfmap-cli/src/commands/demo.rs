@@ -25,6 +25,9 @@ pub struct Args {
 
 pub fn run(a: Args) -> Result<()> {
     let out = &a.out_dir;
+    if out.exists() && !out.is_dir() {
+        anyhow::bail!("{}: exists and is not a folder; give the demo a folder to write to", out.display());
+    }
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let scene_path = out.join("scene.toml");
     mrfmap::atomic_file::write_atomic(&scene_path, |w| w.write_all(DEMO_SCENE.as_bytes()))?;

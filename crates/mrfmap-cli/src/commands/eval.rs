@@ -128,6 +128,27 @@ pub fn json_number(v: Option<f64>) -> String {
     }
 }
 
+/// Warns when `views` of `dataset` went into `map` (as `build` records them): the score is
+/// then not a held-out score.
+fn warn_if_not_held_out(map: &Map, dataset: &std::path::Path, views: &[usize]) {
+    let same = |p: &str| {
+        let canon = |q: &std::path::Path| std::fs::canonicalize(q).ok();
+        canon(std::path::Path::new(p)).is_some_and(|a| Some(a) == canon(dataset))
+    };
+    let (Some(source), Some(frames)) = (map.params.get("source"), map.params.get("frames")) else { return };
+    if !same(source) {
+        return;
+    }
+    let used = super::build::parse_ranges(frames);
+    let seen: Vec<usize> = views.iter().copied().filter(|v| used.contains(v)).collect();
+    if !seen.is_empty() {
+        tracing::warn!(
+            "views {seen:?} were used to build this map: their scores are not held-out scores (build with \
+             --exclude to hold views out)"
+        );
+    }
+}
+
 /// `{"accuracy": mean, "views": [...]}` fields (without braces) for scored views.
 pub fn views_json(scores: &[(usize, ViewScore)]) -> String {
     let accs: Vec<f64> = scores.iter().filter_map(|(_, s)| s.accuracy()).collect();
@@ -220,6 +241,7 @@ pub fn run(a: Args) -> Result<()> {
         let dataset = Dataset::open(ds_path)?;
         let views = if a.views.is_empty() { (0..dataset.len()).collect() } else { a.views.clone() };
         super::build::check_indices(dataset.len(), &views)?;
+        warn_if_not_held_out(&map, ds_path, &views);
         let bar = crate::progress::bar(views.len() as u64, "scoring");
         let mut scores = Vec::new();
         for &v in &views {

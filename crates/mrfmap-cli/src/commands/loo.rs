@@ -16,8 +16,8 @@ use super::eval::{MetricOptions, score, views_json, views_table};
 pub struct Args {
     /// Dataset folder.
     dataset: PathBuf,
-    /// Inference engine.
-    #[arg(long, default_value = "logodds")]
+    /// Inference engine: logodds, mrf or crm.
+    #[arg(long, default_value = "logodds", value_parser = ["logodds", "mrf", "crm"])]
     engine: String,
     /// Voxel edge in metres.
     #[arg(long, value_parser = super::positive, allow_hyphen_values = true)]

@@ -42,6 +42,11 @@ pub struct Camera {
     pub max_depth: Option<f64>,
 }
 
+/// Largest image side accepted (pixels).
+pub const MAX_SIDE: u32 = 65_535;
+/// Most pixels an image may have (a 16k x 8k sensor; 512 MiB as f32 depths).
+pub const MAX_PIXELS: usize = 1 << 27;
+
 impl Camera {
     /// Intrinsics without a depth range; fails on a zero focal length, empty image or bad scale.
     pub fn new(fx: f64, fy: f64, cx: f64, cy: f64, width: u32, height: u32, depth_scale: f64) -> Result<Self> {
@@ -62,7 +67,7 @@ impl Camera {
         toml::to_string(self).expect("camera fields are plain numbers")
     }
 
-    fn validate(&self) -> std::result::Result<(), String> {
+    pub(crate) fn validate(&self) -> std::result::Result<(), String> {
         let finite = [self.fx, self.fy, self.cx, self.cy, self.depth_scale];
         if finite.iter().any(|v| !v.is_finite()) {
             return Err("intrinsics must be finite numbers".into());
@@ -72,6 +77,13 @@ impl Camera {
         }
         if self.width == 0 || self.height == 0 {
             return Err(format!("image size must be positive ({}x{})", self.width, self.height));
+        }
+        if self.width > MAX_SIDE || self.height > MAX_SIDE || self.pixel_count() > MAX_PIXELS {
+            return Err(format!(
+                "image size {}x{} is larger than any depth sensor's (at most {MAX_SIDE} pixels a side and \
+                 {MAX_PIXELS} pixels in all)",
+                self.width, self.height
+            ));
         }
         if self.depth_scale <= 0.0 {
             return Err(format!("depth_scale must be positive, got {}", self.depth_scale));

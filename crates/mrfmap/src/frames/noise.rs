@@ -125,6 +125,16 @@ impl NoiseModel {
     fn from_file(f: NoiseFile) -> std::result::Result<Self, String> {
         let bias = Poly::from_coeffs(&f.bias).map_err(|m| format!("bias: {m}"))?;
         let std = Poly::from_coeffs(&f.std).map_err(|m| format!("std: {m}"))?;
+        // A fitted polynomial may dip below zero at depths it saw little of (STD_FLOOR covers
+        // that), but a std that is nowhere positive over a depth camera's range is a typo.
+        let working = (0..=48).map(|i| 0.2 + 0.1 * i as f64);
+        if working.clone().all(|z| std.eval(z) <= 0.0) {
+            return Err(format!(
+                "std is not positive at any depth from 0.2 to 5 m (coefficients {:?}): a standard deviation \
+                 must be positive",
+                std.0
+            ));
+        }
         let patches = match f.patches {
             None => None,
             Some(p) => {

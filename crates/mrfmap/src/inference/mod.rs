@@ -15,6 +15,7 @@
 //! Log-odds and CRM also take range scans ([`Engine::integrate_scan`]).
 
 mod crm;
+mod estimate;
 mod logodds;
 mod mrf;
 
@@ -22,6 +23,7 @@ use std::fmt;
 use std::str::FromStr;
 
 pub use crm::{CrmEngine, CrmParams, crm_ray_factors};
+pub use estimate::{Extent, estimate_memory};
 pub use logodds::{LogOddsEngine, LogOddsParams, Marking, SensorModel};
 pub use mrf::{
     Aggregation, Allocation, DEFAULT_TOLERANCE, KeyframeId, KeyframeSelection, MU_EPS, MrfEngine, MrfParams, RunReport,

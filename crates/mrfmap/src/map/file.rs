@@ -126,11 +126,33 @@ fn decode(bytes: &[u8]) -> std::result::Result<Map, String> {
     let mut map = Map::new(&header.engine, header.resolution).map_err(|e| format!("bad header: {e}"))?;
     map.params = header.params;
     map.has_variance = header.has_variance;
+    // Every brick takes at least 76 + 4 bytes of file and 4 KiB of memory: a header claiming
+    // more bricks than the file can hold fails here, before anything is allocated, and the
+    // memory the bricks will take is checked against the limit.
+    let min_brick = 80 + 4 * header.has_variance as u64;
+    if header.bricks.saturating_mul(min_brick) > (body.len() - r.pos) as u64 {
+        return Err(format!(
+            "header says {} bricks, more than the file's {} bytes can hold",
+            header.bricks,
+            body.len()
+        ));
+    }
+    let brick_bytes = std::mem::size_of::<crate::map::Brick<MapVoxel>>() as f64 + 64.0;
+    crate::limits::check_memory("loading the map", header.bricks as f64 * brick_bytes, "crop it on a larger machine")
+        .map_err(|e| e.to_string())?;
+    let mut previous: Option<BrickKey> = None;
     for _ in 0..header.bricks {
         let key = BrickKey([r.i32()?, r.i32()?, r.i32()?]);
+        if previous.is_some_and(|p| p >= key) {
+            return Err(format!("bricks are not sorted by key (brick {:?} after {:?})", key.0, previous.unwrap().0));
+        }
+        previous = Some(key);
         let mut mask = [0u64; 8];
         for w in &mut mask {
             *w = r.u64()?;
+        }
+        if mask == [0; 8] {
+            return Err(format!("brick {:?} has no voxels", key.0));
         }
         let brick = map.voxels.brick_or_insert(key);
         for slot in mask_slots(&mask) {
@@ -224,5 +246,44 @@ mod tests {
         future[8] = 9;
         assert!(decode(&future).unwrap_err().contains("version 9"));
         assert!(decode(&bytes[..10]).is_err());
+    }
+
+    /// A file with a hand-written header and brick records, checksummed.
+    fn forged(header: &str, bricks: &[([i32; 3], [u64; 8])]) -> Vec<u8> {
+        let mut out = MAGIC.to_vec();
+        out.extend_from_slice(&VERSION.to_le_bytes());
+        out.extend_from_slice(&(header.len() as u32).to_le_bytes());
+        out.extend_from_slice(header.as_bytes());
+        for (key, mask) in bricks {
+            key.iter().for_each(|c| out.extend_from_slice(&c.to_le_bytes()));
+            mask.iter().for_each(|w| out.extend_from_slice(&w.to_le_bytes()));
+            for _ in 0..mask.iter().map(|w| w.count_ones()).sum::<u32>() {
+                out.extend_from_slice(&0.5f32.to_le_bytes());
+            }
+        }
+        let crc = crc32(&out);
+        out.extend_from_slice(&crc.to_le_bytes());
+        out
+    }
+
+    #[test]
+    fn forged_headers_and_bricks_fail_before_allocating() {
+        let header = |bricks: u64, voxels: u64| {
+            format!(
+                "engine = \"logodds\"\nresolution = 0.05\nhas_variance = false\nbricks = {bricks}\nvoxels = {voxels}\n[params]\n"
+            )
+        };
+        let one = [1, 0, 0, 0, 0, 0, 0, 0];
+        assert!(decode(&forged(&header(1, 1), &[([0, 0, 0], one)])).is_ok());
+        let e = decode(&forged(&header(u64::MAX / 2, 1), &[([0, 0, 0], one)])).unwrap_err();
+        assert!(e.contains("more than the file"), "{e}");
+        // An empty brick (76 bytes) followed by one of two voxels (84) to pass the size check.
+        let e =
+            decode(&forged(&header(2, 2), &[([0, 0, 0], [0; 8]), ([1, 0, 0], [3, 0, 0, 0, 0, 0, 0, 0])])).unwrap_err();
+        assert!(e.contains("no voxels"), "{e}");
+        let e = decode(&forged(&header(2, 2), &[([1, 0, 0], one), ([0, 0, 0], one)])).unwrap_err();
+        assert!(e.contains("not sorted"), "{e}");
+        let e = decode(&forged(&header(2, 2), &[([0, 0, 0], one), ([0, 0, 0], one)])).unwrap_err();
+        assert!(e.contains("not sorted"), "{e}");
     }
 }

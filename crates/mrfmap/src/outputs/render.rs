@@ -40,13 +40,17 @@ impl std::str::FromStr for Colouring {
 }
 
 impl Colouring {
-    /// The colour of `voxel` (at `key` in `map`); `z_range` is the height range `Height` spans.
-    pub fn colour(self, map: &Map, key: VoxelKey, voxel: &MapVoxel, z_range: (f64, f64)) -> Rgb {
+    /// The colour of `voxel` (at `key` in `map`); `z_range` is the height range `Height` spans,
+    /// `threshold` the lowest occupancy drawn (where `Occupancy` starts).
+    pub fn colour(self, map: &Map, key: VoxelKey, voxel: &MapVoxel, z_range: (f64, f64), threshold: f32) -> Rgb {
         let r = map.resolution();
         match self {
             Colouring::Height => viridis((key.center(r)[2] - z_range.0) / (z_range.1 - z_range.0).max(r)),
             Colouring::Sigma => viridis(mean_sigma(map, voxel).1 / 0.5),
-            Colouring::Occupancy => viridis((voxel.occupancy as f64 - 0.5) / 0.5),
+            Colouring::Occupancy => {
+                let t = threshold.clamp(0.0, 0.999) as f64;
+                viridis((voxel.occupancy as f64 - t) / (1.0 - t))
+            }
         }
     }
 }
@@ -118,14 +122,18 @@ pub fn render_map(map: &Map, view: &View) -> Result<Canvas> {
     let right = norm(cross(forward, [0.0, 0.0, 1.0])).or_else(|| norm(cross(forward, [0.0, 1.0, 0.0]))).expect("unit");
     let up = cross(right, forward);
     if !(v.width > 0 && v.height > 0 && v.fov_degrees > 0.0 && v.fov_degrees < 179.0) {
-        return Err(Error::Invalid(format!("bad view: {}x{} pixels, {} degrees", v.width, v.height, v.fov_degrees)));
+        return Err(Error::Invalid(format!(
+            "bad view: {}x{} pixels and a {} degree field of view; need at least 1x1 pixels and a field of view \
+             between 0 and 179 degrees (exclusive)",
+            v.width, v.height, v.fov_degrees
+        )));
     }
     let focal = 0.5 * v.width as f64 / (0.5 * v.fov_degrees.to_radians()).tan();
     let r = map.resolution();
     let bounds = Aabb::new(lo, hi)?;
     let (zmin, zmax) = (lo[2], hi[2]);
     let colour_of = |key: VoxelKey| -> Rgb {
-        v.colouring.colour(map, key, map.voxels.get(key).expect("hit voxels exist"), (zmin, zmax))
+        v.colouring.colour(map, key, map.voxels.get(key).expect("hit voxels exist"), (zmin, zmax), v.threshold)
     };
     let w = v.width as usize;
     let mut rgb = vec![255u8; w * v.height as usize * 3];
@@ -163,7 +171,7 @@ pub fn render_map(map: &Map, view: &View) -> Result<Canvas> {
     let label = match v.colouring {
         Colouring::Height => format!("COLOUR: HEIGHT {zmin:.2} TO {zmax:.2} M"),
         Colouring::Sigma => "COLOUR: SIGMA 0 TO 0.5".to_string(),
-        Colouring::Occupancy => "COLOUR: OCCUPANCY 0.5 TO 1".to_string(),
+        Colouring::Occupancy => format!("COLOUR: OCCUPANCY {} TO 1", v.threshold),
     };
     canvas.text(8, 8, &label, 2, [0, 0, 0]);
     Ok(canvas)
@@ -208,11 +216,15 @@ pub fn slice_map(map: &Map, axis: usize, value: f64) -> Result<Canvas> {
     }
     let (nw, nh) = ((hi[0] - lo[0] + 1) as u32, (hi[1] - lo[1] + 1) as u32);
     let scale = (600 / nw.max(nh)).max(1) as i64;
-    let mut c = Canvas::new(nw * scale as u32, nh * scale as u32);
-    c.fill(0, 0, nw as i64 * scale, nh as i64 * scale, [215, 215, 215]);
+    let top = 28i64;
+    let legend = format!("{} = {value}: OCCUPANCY 0 TO 1, UNKNOWN GREY", names[axis].to_uppercase());
+    let mut c =
+        Canvas::new((nw * scale as u32).max(Canvas::text_width(&legend, 1) as u32), nh * scale as u32 + top as u32);
+    c.text(0, 8, &legend, 1, [0, 0, 0]);
+    c.fill(0, top, nw as i64 * scale, top + nh as i64 * scale, [215, 215, 215]);
     for (key, p) in in_plane {
         let x = (key.0[a] - lo[0]) as i64 * scale;
-        let y = (hi[1] - key.0[b]) as i64 * scale;
+        let y = top + (hi[1] - key.0[b]) as i64 * scale;
         c.fill(x, y, x + scale, y + scale, viridis(p as f64));
     }
     Ok(c)

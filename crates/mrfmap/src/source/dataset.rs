@@ -100,17 +100,20 @@ impl Dataset {
         for (i, (t, path, _)) in depths.into_iter().enumerate() {
             match pairs[i] {
                 Some(j) => frames.push(FrameInfo { timestamp: t, depth: path, pose: poses[j].1 }),
-                None => {
-                    tracing::warn!(
-                        "{}: no pose within {} s of depth frame {} (t = {t}); skipped",
-                        root.join("groundtruth.txt").display(),
-                        options.max_time_diff,
-                        path.display()
-                    );
-                    unmatched.push(path);
-                }
+                None => unmatched.push((t, path)),
             }
         }
+        // One line for all of them: a real TUM sequence has hundreds.
+        if let (Some((t0, first)), Some((t1, _))) = (unmatched.first(), unmatched.last()) {
+            tracing::warn!(
+                "{}: {} depth frame(s) have no pose within {} s and are skipped (first {}, t = {t0} .. {t1})",
+                root.join("groundtruth.txt").display(),
+                unmatched.len(),
+                options.max_time_diff,
+                first.display()
+            );
+        }
+        let unmatched: Vec<PathBuf> = unmatched.into_iter().map(|(_, p)| p).collect();
         if frames.is_empty() {
             return Err(Error::file(
                 root.join("groundtruth.txt"),

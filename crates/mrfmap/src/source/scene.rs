@@ -215,6 +215,7 @@ impl Scene {
     pub fn from_toml(text: &str, origin: &Path) -> Result<Self> {
         let f: SceneFile = parse_toml(text, origin)?;
         let bad = |m: String| Error::file(origin, m);
+        f.camera.validate().map_err(|m| bad(format!("[camera]: {m}")))?;
         let noise = f.noise.map(|v| NoiseModel::from_value(v, origin)).transpose()?;
         if let Some(n) = &noise {
             n.check_camera(&f.camera).map_err(|m| bad(format!("[noise]: {m}")))?;

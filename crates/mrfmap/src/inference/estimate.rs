@@ -1,0 +1,110 @@
+//! How much memory a build will take, estimated before it starts (checked against
+//! [`crate::limits::max_memory`]).
+//!
+//! A map holds the 8x8x8 bricks its rays cross. Their number is bounded twice: by the volume
+//! the rays span (the box around the sensor positions and ray end points, cut to the map's
+//! bounds) over a brick's volume, and by the total ray length over a brick's
+//! edge (twice: a ray crosses a brick at a slant). The smaller bound wins; indoor scenes are
+//! volume-bound, long trajectories ray-bound. Bytes per brick were measured on coffin-world
+//! and the demo room (BENCHMARKS.md) and include each engine's scratch memory: log-odds
+//! 6 KiB, CRM 1 KiB + 512 voxels x 4 (particles + 1) bytes. The MRF (band allocation)
+//! allocates around depth points only: about 2.5 KiB for each of three bricks per brick
+//! holding end points, once for the marginals and once per keyframe. Accurate to a factor of about 2: enough to refuse a
+//! build that cannot fit, not to size a machine.
+
+use super::{EngineConfig, EngineKind};
+use crate::map::BRICK_EDGE;
+
+/// Where the sensors were and how far they saw.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Extent {
+    /// Lower corner of the reachable box.
+    pub min: [f64; 3],
+    /// Upper corner.
+    pub max: [f64; 3],
+    /// Summed length of every ray that will be traced (metres).
+    pub ray_length: f64,
+    /// Bricks holding ray end points: over all readings sampled, and per sampled reading
+    /// (0 when unknown). What the MRF allocates: bricks around depth points only.
+    pub surface_bricks: (f64, f64),
+}
+
+impl Extent {
+    /// The box around `points` (sensor positions and ray end points, or a sample of them),
+    /// cut to the config's bounds, with the total ray length. `None` without points.
+    pub fn new(points: impl IntoIterator<Item = [f64; 3]>, ray_length: f64, config: &EngineConfig) -> Option<Self> {
+        let (mut min, mut max) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+        for p in points.into_iter().filter(|p| p.iter().all(|v| v.is_finite())) {
+            for a in 0..3 {
+                min[a] = min[a].min(p[a]);
+                max[a] = max[a].max(p[a]);
+            }
+        }
+        if !min[0].is_finite() {
+            return None;
+        }
+        if let Some(b) = config.limits.bounds {
+            for a in 0..3 {
+                min[a] = min[a].max(b.min[a]);
+                max[a] = max[a].min(b.max[a]).max(min[a]);
+            }
+        }
+        Some(Extent { min, max, ray_length, surface_bricks: (0.0, 0.0) })
+    }
+
+    /// Records the bricks (at `resolution`) holding the end points of each sampled reading.
+    pub fn with_surface(mut self, readings: &[Vec<[f64; 3]>], resolution: f64) -> Self {
+        let key = |p: &[f64; 3]| crate::map::VoxelKey::from_point(*p, resolution).brick();
+        let all: rustc_hash::FxHashSet<_> = readings.iter().flatten().map(key).collect();
+        let per: f64 =
+            readings.iter().map(|r| r.iter().map(key).collect::<rustc_hash::FxHashSet<_>>().len() as f64).sum::<f64>()
+                / readings.len().max(1) as f64;
+        self.surface_bricks = (all.len() as f64, per);
+        self
+    }
+
+    /// Largest side of the box (metres).
+    pub fn size(&self) -> f64 {
+        (0..3).map(|a| self.max[a] - self.min[a]).fold(0.0, f64::max)
+    }
+
+    /// Bricks of edge `8 resolution` the rays can touch.
+    pub fn bricks(&self, resolution: f64) -> f64 {
+        let edge = BRICK_EDGE as f64 * resolution;
+        let by_volume: f64 = (0..3).map(|a| ((self.max[a] - self.min[a]) / edge).ceil() + 1.0).product();
+        let by_rays = 2.0 * self.ray_length / edge;
+        by_volume.min(by_rays.max(1.0))
+    }
+}
+
+/// Estimated peak memory in bytes of building `config`'s map from `readings` frames or scans.
+///
+/// ```
+/// use mrfmap::inference::{EngineConfig, EngineKind, Extent, estimate_memory};
+/// let config = EngineConfig::new(EngineKind::LogOdds, 0.02);
+/// let room = Extent::new([[-3.0, -3.0, 0.0], [3.0, 3.0, 3.0]], 1e7, &config).unwrap();
+/// let bytes = estimate_memory(&config, &room, 10);
+/// assert!(bytes > 1e7 && bytes < 1e9, "{bytes}");
+/// let tiny = EngineConfig::new(EngineKind::LogOdds, 1e-9);
+/// assert!(estimate_memory(&tiny, &room, 10) > 1e15);
+/// ```
+pub fn estimate_memory(config: &EngineConfig, extent: &Extent, readings: usize) -> f64 {
+    let per_brick = match config.kind {
+        EngineKind::LogOdds => 6144.0,
+        EngineKind::Crm => 1024.0 + 512.0 * 4.0 * (config.crm.particles as f64 + 1.0),
+        EngineKind::Mrf => {
+            // Band allocation: bricks around depth points (and their neighbours), for the
+            // marginals and for each keyframe's messages.
+            let (all, per) = extent.surface_bricks;
+            if per > 0.0 && config.mrf.allocation == super::Allocation::Band {
+                return BAND * 2560.0 * (all + readings as f64 * per);
+            }
+            6144.0 * (1.0 + readings as f64 / 2.0)
+        }
+    };
+    extent.bricks(config.resolution) * per_brick
+}
+
+/// Bricks the MRF's band allocates per brick holding end points (the brick and its neighbours
+/// along the rays; measured 209 MiB for an estimate of about 330 on coffin-world at 0.01 m).
+const BAND: f64 = 3.0;

@@ -390,14 +390,16 @@ impl CrmEngine {
                 mask_set(&mut touched, f.0 as usize);
             }
             let mut next_factor = 0;
-            let (mut p, mut last) = (vec![0f32; k], vec![0f32; k]);
+            let (mut p, uniform) = (vec![0f32; k], vec![1.0 / k as f32; k]);
             for slot in mask_slots(&touched) {
                 let existing = brick.index(slot);
-                match existing {
-                    Some(i) => last.copy_from_slice(&brick.pdfs[i * k..(i + 1) * k]),
-                    None => last.fill(1.0 / k as f32),
-                }
-                p.copy_from_slice(&last);
+                // The pdf before this frame, read in place (copying it was a fifth of a laser
+                // log's build): the fallback if every particle underflows.
+                let last: &[f32] = match existing {
+                    Some(i) => &brick.pdfs[i * k..(i + 1) * k],
+                    None => &uniform,
+                };
+                p.copy_from_slice(last);
                 let mut n = fb.passes[slot] as usize;
                 while n > 0 {
                     let step = n.min(POWER_TABLE - 1);
@@ -405,7 +407,11 @@ impl CrmEngine {
                         *pj *= pw;
                     }
                     n -= step;
-                    normalise(&mut p, &last, grid);
+                    // The last step needs no renormalising of its own: the particle at m = 0
+                    // keeps its mass, and the factors renormalise every few.
+                    if n > 0 {
+                        normalise(&mut p, last, grid);
+                    }
                 }
                 // Factors are scaled to a maximum of 1, so a few of them in a row cannot
                 // underflow: renormalise every few.
@@ -417,12 +423,12 @@ impl CrmEngine {
                     }
                     pending += 1;
                     if pending == RENORMALISE_EVERY {
-                        normalise(&mut p, &last, grid);
+                        normalise(&mut p, last, grid);
                         pending = 0;
                     }
                     next_factor += 1;
                 }
-                let mean = normalise(&mut p, &last, grid);
+                let mean = normalise(&mut p, last, grid);
                 // A voxel seen for the first time whose evidence hardly moves it (voxels deep
                 // behind a surface that noisy long readings reach) stays unknown instead of
                 // entering the map at its prior.

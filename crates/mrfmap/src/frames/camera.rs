@@ -57,8 +57,13 @@ impl Camera {
 
     /// Reads `camera.toml`; every problem names the file.
     pub fn load(path: &Path) -> Result<Self> {
-        let cam: Camera = parse_toml(&read_text(path)?, path)?;
-        cam.validate().map_err(|m| Error::file(path, m))?;
+        Self::from_toml(&read_text(path)?, path)
+    }
+
+    /// Parses `camera.toml` text; `origin` names the file in errors.
+    pub fn from_toml(text: &str, origin: &Path) -> Result<Self> {
+        let cam: Camera = parse_toml(text, origin)?;
+        cam.validate().map_err(|m| Error::file(origin, m))?;
         Ok(cam)
     }
 

@@ -104,7 +104,7 @@ impl<'a> Reader<'a> {
     }
 }
 
-fn decode(bytes: &[u8]) -> std::result::Result<Map, String> {
+pub(super) fn decode(bytes: &[u8]) -> std::result::Result<Map, String> {
     if bytes.len() < MAGIC.len() || &bytes[..MAGIC.len()] != MAGIC {
         return Err("not an mrfmap map file (bad magic bytes)".into());
     }

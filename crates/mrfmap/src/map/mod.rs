@@ -100,4 +100,9 @@ impl Map {
     pub fn load(path: &Path) -> crate::Result<Self> {
         file::load(path)
     }
+
+    /// A map from the bytes of a map file (what [`Map::load`] reads).
+    pub fn from_bytes(bytes: &[u8]) -> crate::Result<Self> {
+        file::decode(bytes).map_err(crate::Error::Invalid)
+    }
 }

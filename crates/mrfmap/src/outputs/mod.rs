@@ -33,8 +33,10 @@ pub use canvas::{Canvas, PlotArea, Rgb, nice_step};
 #[cfg(feature = "mcap")]
 pub use foxglove::{SCENE_TOPIC, SceneOptions, SceneSummary, write_scene_mcap};
 pub use grid2d::{FREE_THRESH, Grid2dFiles, MapServerGrid, OCCUPIED_THRESH, read_map_server, write_map_server};
-pub use octomap::{OctomapFormat, OctomapLeaf, OctomapSummary, OctomapTree, TREE_DEPTH, read_octomap, write_octomap};
-pub use ply::{PlyOptions, PlyVertices, read_ply, write_changes_ply, write_ply};
+pub use octomap::{
+    OctomapFormat, OctomapLeaf, OctomapSummary, OctomapTree, TREE_DEPTH, decode_octomap, read_octomap, write_octomap,
+};
+pub use ply::{PlyOptions, PlyVertices, parse_ply, read_ply, write_changes_ply, write_ply};
 pub use query::{
     BoxAnswer, LiveEngine, MAX_BOX_VOXELS, PointAnswer, QueryOptions, SegmentAnswer, VoxelSource, box_keys,
     box_voxel_count, for_each_in_box, query_box, query_point, query_points, query_polyline, query_segment,

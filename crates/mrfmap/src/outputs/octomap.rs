@@ -246,23 +246,28 @@ pub fn write_octomap(map: &Map, path: &Path, format: OctomapFormat) -> Result<Oc
 /// Reads an OctoMap `.bt` or `.ot` file (the `OcTree` type only).
 pub fn read_octomap(path: &Path) -> Result<OctomapTree> {
     let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
-    let mut r = BufReader::new(file);
-    let bad = |m: String| Error::file(path, m);
+    decode_octomap(BufReader::new(file)).map_err(|m| Error::file(path, m))
+}
+
+/// [`read_octomap`] from any reader; the error says what is wrong with the data.
+pub fn decode_octomap(mut r: impl BufRead) -> std::result::Result<OctomapTree, String> {
     let mut line = String::new();
-    let read_line = |r: &mut BufReader<std::fs::File>, line: &mut String| -> Result<bool> {
+    // Header lines are short: a "line" longer than this is not a header.
+    let read_line = |r: &mut dyn BufRead, line: &mut String| -> std::result::Result<bool, String> {
         line.clear();
-        Ok(r.read_line(line).map_err(|e| Error::io(path, e))? > 0)
+        let n = r.take(4096).read_line(line).map_err(|e| e.to_string())?;
+        Ok(n > 0)
     };
     read_line(&mut r, &mut line)?;
     let format = match line.trim_end() {
         BT_HEADER => OctomapFormat::Binary,
         OT_HEADER => OctomapFormat::Full,
-        other => return Err(bad(format!("not an OctoMap file (first line {other:?})"))),
+        other => return Err(format!("not an OctoMap file (first line {other:?})")),
     };
     let (mut id, mut size, mut res) = (None, None, None);
     loop {
         if !read_line(&mut r, &mut line)? {
-            return Err(bad("header ends before `data`".into()));
+            return Err("header ends before `data`".into());
         }
         let l = line.trim();
         if l.starts_with('#') || l.is_empty() {
@@ -271,20 +276,20 @@ pub fn read_octomap(path: &Path) -> Result<OctomapTree> {
         let (k, v) = l.split_once(' ').unwrap_or((l, ""));
         match k {
             "id" => id = Some(v.to_string()),
-            "size" => size = Some(v.parse::<u64>().map_err(|e| bad(format!("size: {e}")))?),
-            "res" => res = Some(v.parse::<f64>().map_err(|e| bad(format!("res: {e}")))?),
+            "size" => size = Some(v.parse::<u64>().map_err(|e| format!("size: {e}"))?),
+            "res" => res = Some(v.parse::<f64>().map_err(|e| format!("res: {e}"))?),
             "data" => break,
-            other => return Err(bad(format!("unknown header key {other:?}"))),
+            other => return Err(format!("unknown header key {other:?}")),
         }
     }
     if id.as_deref() != Some("OcTree") {
-        return Err(bad(format!("tree type {id:?} is not OcTree")));
+        return Err(format!("tree type {id:?} is not OcTree"));
     }
     let (Some(size), Some(resolution)) = (size, res) else {
-        return Err(bad("header lacks size or res".into()));
+        return Err("header lacks size or res".into());
     };
     let mut data = Vec::new();
-    r.read_to_end(&mut data).map_err(|e| Error::io(path, e))?;
+    r.read_to_end(&mut data).map_err(|e| e.to_string())?;
     let mut tree = OctomapTree { format, resolution, nodes: 0, leaves: Vec::new() };
     if size > 0 {
         let mut pos = 0;
@@ -293,13 +298,13 @@ pub fn read_octomap(path: &Path) -> Result<OctomapTree> {
             OctomapFormat::Binary => read_bt_node(&data, &mut pos, 0, [0; 3], &mut tree),
             OctomapFormat::Full => read_ot_node(&data, &mut pos, 0, [0; 3], &mut tree),
         }
-        .map_err(|m| bad(m.to_string()))?;
+        .map_err(|m| m.to_string())?;
         if pos != data.len() {
-            return Err(bad(format!("{} bytes after the tree", data.len() - pos)));
+            return Err(format!("{} bytes after the tree", data.len() - pos));
         }
     }
     if tree.nodes != size {
-        return Err(bad(format!("header says {size} nodes, the data holds {}", tree.nodes)));
+        return Err(format!("header says {size} nodes, the data holds {}", tree.nodes));
     }
     Ok(tree)
 }

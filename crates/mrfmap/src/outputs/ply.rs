@@ -106,7 +106,8 @@ pub fn read_ply(path: &Path) -> Result<PlyVertices> {
     parse_ply(&bytes).map_err(|m| Error::file(path, m))
 }
 
-fn parse_ply(bytes: &[u8]) -> std::result::Result<PlyVertices, String> {
+/// [`read_ply`] from the file's bytes; the error says what is wrong.
+pub fn parse_ply(bytes: &[u8]) -> std::result::Result<PlyVertices, String> {
     const END: &[u8] = b"end_header\n";
     let end = bytes.windows(END.len()).position(|w| w == END).ok_or("not a PLY file (no end_header)")?;
     let header = std::str::from_utf8(&bytes[..end]).map_err(|_| "PLY header is not text")?;
@@ -143,8 +144,11 @@ fn parse_ply(bytes: &[u8]) -> std::result::Result<PlyVertices, String> {
     let count = count.ok_or("PLY has no vertex element")?;
     let data = &bytes[end + END.len()..];
     let np = properties.len();
+    if np == 0 {
+        return Err("PLY vertex element has no float properties".into());
+    }
     let rows = if binary {
-        if data.len() < count * np * 4 {
+        if count.checked_mul(np * 4).is_none_or(|need| data.len() < need) {
             return Err("PLY body is truncated".into());
         }
         data.chunks_exact(np * 4)
@@ -205,5 +209,11 @@ mod tests {
         assert!(parse_ply(b"hello").unwrap_err().contains("not a PLY"));
         let short = b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nend_header\n\0\0\0\0";
         assert!(parse_ply(short).unwrap_err().contains("truncated"));
+        // Found by fuzzing (fuzz/): no properties, and a count whose byte size overflows.
+        let none = b"ply\nformat binary_little_endian 1.0\nelement vertex 1027\nend_header\n\0\0\0\0";
+        assert!(parse_ply(none).unwrap_err().contains("no float properties"));
+        let huge =
+            b"ply\nformat binary_little_endian 1.0\nelement vertex 9223372036854775807\nproperty float x\nend_header\n";
+        assert!(parse_ply(huge).unwrap_err().contains("truncated"));
     }
 }

@@ -144,7 +144,7 @@ impl CarmenLog {
         } else {
             Box::new(BufReader::new(file))
         };
-        let readings = parse(reader, options).map_err(|m| Error::file(path, m))?;
+        let readings = parse_carmen(reader, options).map_err(|m| Error::file(path, m))?;
         if readings.is_empty() {
             return Err(Error::file(path, "no FLASER, RLASER or ROBOTLASER1 messages: not a CARMEN laser log?"));
         }
@@ -152,8 +152,9 @@ impl CarmenLog {
     }
 }
 
-/// Laser readings of a log, or a message naming the line that is wrong.
-fn parse(reader: impl BufRead, options: CarmenOptions) -> std::result::Result<Vec<LaserReading>, String> {
+/// Laser readings of a log read from `reader` (decompressed), or a message naming the line
+/// that is wrong.
+pub fn parse_carmen(reader: impl BufRead, options: CarmenOptions) -> std::result::Result<Vec<LaserReading>, String> {
     let mut out = Vec::new();
     for (i, line) in reader.split(b'\n').enumerate() {
         let n = i + 1;
@@ -265,7 +266,7 @@ mod tests {
     use super::*;
 
     fn read(text: &str, options: CarmenOptions) -> std::result::Result<Vec<LaserReading>, String> {
-        parse(text.as_bytes(), options)
+        parse_carmen(text.as_bytes(), options)
     }
 
     const LOG: &str = "# a comment\nPARAM robot_frontlaser_offset 0.0 nohost 0\nODOM 0 0 0 0 0 0 0.1 h 0.1\n\

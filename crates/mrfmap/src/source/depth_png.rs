@@ -5,7 +5,7 @@ use std::io::BufReader;
 use std::path::Path;
 
 use crate::error::{Error, Result};
-use crate::frames::DepthImage;
+use crate::frames::{DepthImage, MAX_PIXELS, MAX_SIDE};
 
 /// Reads a 16-bit grayscale depth PNG into metres, checking its size against the camera's
 /// when `expected` is given.
@@ -14,22 +14,33 @@ use crate::frames::DepthImage;
 /// reading them as depth would build a wrong map.
 pub fn read_depth_png(path: &Path, depth_scale: f64, expected: Option<(u32, u32)>) -> Result<DepthImage> {
     let file = File::open(path).map_err(|e| Error::io(path, e))?;
-    let bad = |m: String| Error::file(path, m);
-    let mut reader =
-        png::Decoder::new(BufReader::new(file)).read_info().map_err(|e| bad(format!("unreadable PNG: {e}")))?;
+    decode_depth_png(BufReader::new(file), depth_scale, expected).map_err(|m| Error::file(path, m))
+}
+
+/// [`read_depth_png`] from any reader; the error says what is wrong with the image.
+pub fn decode_depth_png(
+    reader: impl std::io::BufRead + std::io::Seek,
+    depth_scale: f64,
+    expected: Option<(u32, u32)>,
+) -> std::result::Result<DepthImage, String> {
+    let mut reader = png::Decoder::new(reader).read_info().map_err(|e| format!("unreadable PNG: {e}"))?;
     let info = reader.info();
     let (width, height) = (info.width, info.height);
     if info.bit_depth != png::BitDepth::Sixteen || info.color_type != png::ColorType::Grayscale {
-        return Err(bad(format!(
+        return Err(format!(
             "expected a 16-bit grayscale depth PNG, found {:?}-bit {:?}",
             info.bit_depth as u8, info.color_type
-        )));
+        ));
     }
     if let Some((ew, eh)) = expected.filter(|&e| e != (width, height)) {
-        return Err(bad(format!("image is {width}x{height} but camera.toml says {ew}x{eh}")));
+        return Err(format!("image is {width}x{height} but camera.toml says {ew}x{eh}"));
     }
-    let mut buf = vec![0u8; reader.output_buffer_size().ok_or_else(|| bad("image too large".into()))?];
-    reader.next_frame(&mut buf).map_err(|e| bad(format!("unreadable PNG: {e}")))?;
+    // The header's size is checked before the pixel buffer is allocated from it.
+    if width > MAX_SIDE || height > MAX_SIDE || width as usize * height as usize > MAX_PIXELS {
+        return Err(format!("image is {width}x{height}, larger than any depth sensor's"));
+    }
+    let mut buf = vec![0u8; reader.output_buffer_size().ok_or("image too large")?];
+    reader.next_frame(&mut buf).map_err(|e| format!("unreadable PNG: {e}"))?;
     let inv = (1.0 / depth_scale) as f32;
     let data = buf
         .chunks_exact(2)

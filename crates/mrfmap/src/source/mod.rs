@@ -13,9 +13,9 @@ mod grid_world;
 mod scene;
 mod simulate;
 
-pub use carmen::{BeamSpacing, CarmenLog, CarmenOptions, LaserReading, Misses};
+pub use carmen::{BeamSpacing, CarmenLog, CarmenOptions, LaserReading, Misses, parse_carmen};
 pub use dataset::{Dataset, DatasetOptions, FrameInfo};
-pub use depth_png::{read_depth_png, write_depth_png};
+pub use depth_png::{decode_depth_png, read_depth_png, write_depth_png};
 pub use grid_world::GridWorld;
 pub use scene::{Scene, Shape};
 pub use simulate::{SimulationSummary, simulate};

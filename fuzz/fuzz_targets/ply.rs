@@ -1,0 +1,5 @@
+#![no_main]
+//! PLY files (`outputs::parse_ply`).
+libfuzzer_sys::fuzz_target!(|data: &[u8]| {
+    let _ = mrfmap::outputs::parse_ply(data);
+});

@@ -148,14 +148,14 @@ pub fn run(a: Args) -> Result<()> {
         n = views.len(),
         k = a.metric.k,
         metric = match a.metric.metric {
-            PeakRule::Entry => "ALGORITHMS.md 6.1, peak at voxel entry",
+            PeakRule::Entry => "docs/ALGORITHMS.md 6.1, peak at voxel entry",
             PeakRule::Exit => "the reference implementation's rule, peak at voxel exit, z-depth",
         },
         sigma = a.metric.sigma,
         rule = if a.metric.paper_boundary {
             "the paper's (unstopped rays ending beyond the map are accurate)"
         } else {
-            "ALGORITHMS.md 6.1 (unstopped rays ending beyond the map are invalid)"
+            "docs/ALGORITHMS.md 6.1 (unstopped rays ending beyond the map are invalid)"
         },
         pu = pixel.0,
         pv = pixel.1,

@@ -23,10 +23,10 @@ pub struct MetricOptions {
     #[arg(long, default_value_t = 1.0, value_parser = super::positive)]
     pub k: f64,
     /// The MRFMap paper's boundary rule: a ray the map does not stop, whose depth lies beyond
-    /// the mapped part, counts as accurate (default: invalid, as ALGORITHMS.md 6.1).
+    /// the mapped part, counts as accurate (default: invalid, as docs/ALGORITHMS.md 6.1).
     #[arg(long)]
     pub paper_boundary: bool,
-    /// Where a ray's most likely surface is: `algorithms` (ALGORITHMS.md 6.1: the entry of
+    /// Where a ray's most likely surface is: `algorithms` (docs/ALGORITHMS.md 6.1: the entry of
     /// the voxel where the generating density peaks, compared as range) or `reference` (the
     /// reference implementation: the exit of the voxel with the largest mean density,
     /// compared as z-depth).

@@ -1,4 +1,4 @@
-//! Pinhole camera intrinsics (ALGORITHMS.md section 1), read from a dataset's `camera.toml`.
+//! Pinhole camera intrinsics (docs/ALGORITHMS.md section 1), read from a dataset's `camera.toml`.
 
 use std::path::Path;
 

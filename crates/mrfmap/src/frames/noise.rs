@@ -1,4 +1,4 @@
-//! The forward sensor noise model (ALGORITHMS.md section 3, MRFMap sec. IV-C).
+//! The forward sensor noise model (docs/ALGORITHMS.md section 3, MRFMap sec. IV-C).
 //!
 //! A surface at true z-depth `z` is measured as `Normal(z + bias(z), std(z)^2)`, with
 //! polynomials of degree 0-2 in `z`, either one aggregate pair for the whole image or one

@@ -1,4 +1,4 @@
-//! Camera poses: camera-to-world rigid transforms `T_wc` (ALGORITHMS.md section 1).
+//! Camera poses: camera-to-world rigid transforms `T_wc` (docs/ALGORITHMS.md section 1).
 
 use nalgebra::{Isometry3, Matrix3, Quaternion, Rotation3, Translation3, UnitQuaternion, Vector3};
 

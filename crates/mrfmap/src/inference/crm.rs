@@ -1,4 +1,4 @@
-//! Confidence-rich mapping (CRM paper secs. 4-6, ALGORITHMS.md 5.2): every voxel keeps a
+//! Confidence-rich mapping (CRM paper secs. 4-6, docs/ALGORITHMS.md 5.2): every voxel keeps a
 //! discrete distribution over its occupancy `m` (K particles at `m_k = k / (K - 1)`), so it
 //! has a mean *and* a variance; each ray updates the voxels it crosses through the sensor
 //! cause model derived from the forward noise model.

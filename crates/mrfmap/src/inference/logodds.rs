@@ -1,4 +1,4 @@
-//! The log-odds occupancy grid (ALGORITHMS.md 5.1), with two inverse sensor models.
+//! The log-odds occupancy grid (docs/ALGORITHMS.md 5.1), with two inverse sensor models.
 //!
 //! [`SensorModel::HitMiss`] is OctoMap's `insertPointCloud`: per scan, every voxel a ray
 //! crosses before its endpoint is marked *free*, the endpoint voxel *occupied*; a voxel that

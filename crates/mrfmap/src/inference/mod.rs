@@ -4,13 +4,13 @@
 //! finished [`Map`] comes out of [`Engine::map`]. Engines read rays through
 //! [`crate::rays`] and keep their state in a [`crate::map::Grid`]. Available:
 //!
-//! - [`LogOddsEngine`]: OctoMap's occupancy grid update (ALGORITHMS.md 5.1), the baseline
+//! - [`LogOddsEngine`]: OctoMap's occupancy grid update (docs/ALGORITHMS.md 5.1), the baseline
 //!   and the fast everyday mode; also the CRM paper's ramp inverse sensor model
 //!   ([`SensorModel`]).
 //! - [`MrfEngine`]: MRFMap's ray Markov random field with loopy belief propagation over
-//!   keyframes (ALGORITHMS.md 5.3); keyframes can be added, removed and re-posed.
+//!   keyframes (docs/ALGORITHMS.md 5.3); keyframes can be added, removed and re-posed.
 //! - [`CrmEngine`]: confidence-rich mapping, a pdf over occupancy per voxel (mean and
-//!   variance) updated through the sensor cause model (ALGORITHMS.md 5.2).
+//!   variance) updated through the sensor cause model (docs/ALGORITHMS.md 5.2).
 //!
 //! Log-odds and CRM also take range scans ([`Engine::integrate_scan`]).
 

@@ -1,4 +1,4 @@
-//! A sparse voxel grid of 8x8x8 bricks in a hash map (ALGORITHMS.md section 4).
+//! A sparse voxel grid of 8x8x8 bricks in a hash map (docs/ALGORITHMS.md section 4).
 //!
 //! Voxel `i` spans `[i r, (i+1) r)` per axis; its brick is `i >> 3` (floor division, so
 //! negative coordinates work) and its slot in the brick is `i & 7`. A brick stores all 512

@@ -1,4 +1,4 @@
-//! The MRFMap accuracy metric for probabilistic maps (ALGORITHMS.md 6.1, MRFMap sec. III-D).
+//! The MRFMap accuracy metric for probabilistic maps (docs/ALGORITHMS.md 6.1, MRFMap sec. III-D).
 //!
 //! A held-out depth pixel is explained by the map if the most likely generating surface
 //! along its ray lies where the held-out depth says. Each voxel with occupancy `p` is a slab
@@ -12,7 +12,7 @@
 //! - visibility never below 0.9 (the map does not explain a surface): *inaccurate* if the
 //!   mapped part of the ray reached `r_D` (the map claims free space where the surface is),
 //!   else *invalid* (the map ended first). The MRFMap paper instead counts the latter as
-//!   accurate ("the measurement lies beyond the map boundary"); ALGORITHMS.md rules by
+//!   accurate ("the measurement lies beyond the map boundary"); docs/ALGORITHMS.md rules by
 //!   default and [`AccuracyParams::beyond_map_is_accurate`] selects the paper's rule;
 //! - otherwise *accurate* iff `|argmax omega - r_D| <= k sigma` (defaults `k = 1`,
 //!   `sigma = 0.05 m`: the reference implementation's setting; the paper's text says 1.5 sigma).
@@ -53,7 +53,7 @@ pub struct AccuracyParams {
     pub empty_at_or_below: Option<f32>,
     /// The MRFMap paper's boundary rule: a ray the map does not stop (visibility stays at or
     /// above 0.9) whose held-out depth lies beyond the mapped part counts as *accurate*
-    /// instead of *invalid*. Off by default (ALGORITHMS.md 6.1).
+    /// instead of *invalid*. Off by default (docs/ALGORITHMS.md 6.1).
     pub beyond_map_is_accurate: bool,
     /// Where the most likely generating surface is and how it is compared.
     pub peak: PeakRule,
@@ -62,7 +62,7 @@ pub struct AccuracyParams {
 /// How a ray's most likely generating surface is found and compared with the held-out depth.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum PeakRule {
-    /// ALGORITHMS.md 6.1: the largest `omega` (a voxel's entry), compared as range.
+    /// docs/ALGORITHMS.md 6.1: the largest `omega` (a voxel's entry), compared as range.
     Entry,
     /// The reference implementation: the voxel with the largest mean `omega` over its length,
     /// located at its exit and compared as z-depth.

@@ -1,4 +1,4 @@
-//! PLY point export of map voxels (ALGORITHMS.md section 7), and a reader for checking it.
+//! PLY point export of map voxels (README "PLY export"), and a reader for checking it.
 //!
 //! One vertex per voxel at its centre, `float x y z occupancy [variance]`, binary
 //! little-endian, with `comment resolution R` so tools can draw voxels at the right size.

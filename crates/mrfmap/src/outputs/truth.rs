@@ -1,4 +1,4 @@
-//! Ground-truth map metrics (ALGORITHMS.md 6.2, CRM sec. 8) for maps of analytic scenes.
+//! Ground-truth map metrics (docs/ALGORITHMS.md 6.2, CRM sec. 8) for maps of analytic scenes.
 //!
 //! Per allocated voxel: the true occupancy (the fraction of a 4x4x4 lattice of points in
 //! the voxel that lie inside the scene's solids, so partly covered voxels are partly

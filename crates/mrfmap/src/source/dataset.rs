@@ -1,4 +1,4 @@
-//! Datasets in the TUM RGB-D / ICL-NUIM layout (ALGORITHMS.md section 2).
+//! Datasets in the TUM RGB-D / ICL-NUIM layout (docs/ALGORITHMS.md section 2).
 //!
 //! ```text
 //! DATASET/depth/*.png  depth.txt  groundtruth.txt  camera.toml  [noise.toml]  [gt_depth/*.png]

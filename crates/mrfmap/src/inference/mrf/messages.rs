@@ -1,4 +1,4 @@
-//! Factor-to-voxel messages of one ray factor (MRFMap eqs. 11-14; ALGORITHMS.md 5.3), in
+//! Factor-to-voxel messages of one ray factor (MRFMap eqs. 11-14; docs/ALGORITHMS.md 5.3), in
 //! time linear in the ray's length.
 //!
 //! A ray crosses voxels `1..N` in order. Voxel `j` sends the factor `mu_j = mu(o_j = 1)`;

@@ -1,6 +1,6 @@
 //! The MRFMap engine: every depth pixel of every keyframe is a ray factor in a Markov random
 //! field over binary voxel occupancies; loopy sum-product belief propagation over all
-//! keyframes gives each voxel's marginal (MRFMap secs. III-IV, ALGORITHMS.md 5.3).
+//! keyframes gives each voxel's marginal (MRFMap secs. III-IV, docs/ALGORITHMS.md 5.3).
 //!
 //! How the pieces fit:
 //! - [`ray_messages`] computes one ray factor's outgoing messages in linear time.

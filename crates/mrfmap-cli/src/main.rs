@@ -27,8 +27,10 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Build a map from a dataset.
+    /// Build a map from a dataset, a laser log or a ROS 2 bag.
     Build(commands::build::Args),
+    /// Look into a ROS 2 bag: `bag info BAG`.
+    Bag(commands::bag::Args),
     /// Learn a per-patch noise model (noise.toml) from measured and true depth images.
     Calibrate(commands::calibrate::Args),
     /// Look at a noise model: `noise plot noise.toml -o curves.png`.
@@ -70,6 +72,16 @@ enum Command {
 }
 
 fn main() {
+    // `mrfmap info MAP | head`: printing to a closed pipe makes `println!` panic; a reader
+    // that stopped reading is not an error, so end quietly as a C tool killed by SIGPIPE would.
+    let default_hook = std::panic::take_hook();
+    std::panic::set_hook(Box::new(move |info| {
+        let text = info.payload().downcast_ref::<String>().map(String::as_str);
+        if text.is_some_and(|t| t.contains("Broken pipe")) {
+            std::process::exit(141);
+        }
+        default_hook(info)
+    }));
     // Argument errors exit 1 with the same prefix as every other error (clap's own exit code
     // is 2); help and version still print to stdout and exit 0.
     let cli = match Cli::try_parse() {
@@ -104,6 +116,7 @@ fn main() {
         }
         match cli.command {
             Command::Build(a) => commands::build::run(a),
+            Command::Bag(a) => commands::bag::run(a),
             Command::Calibrate(a) => commands::calibrate::run(a),
             Command::Noise(a) => commands::noise::run(a),
             Command::Export(a) => commands::export::run(a),

@@ -796,3 +796,73 @@ fn runaway_work_is_refused_before_it_starts_and_argument_errors_look_like_errors
     let o = run(&["eval", s(&held), s(&data), "--views", "0,1"]);
     assert!(o.status.success() && stderr(&o).contains("views [0] were used to build this map"), "{}", stderr(&o));
 }
+
+/// Writes a ROS 2 bag of `data` with `tests/bags/make_bag.py` (needs the `rosbags` package:
+/// `.ci/run` installs it and names its Python in MRFMAP_ROSBAGS_PYTHON).
+fn make_bag(data: &Path, out: &Path, extra: &[&str]) -> bool {
+    let Some(python) = std::env::var_os("MRFMAP_ROSBAGS_PYTHON") else {
+        eprintln!("skipping the ROS bag checks: MRFMAP_ROSBAGS_PYTHON (a Python with `rosbags`) is not set");
+        return false;
+    };
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/bags/make_bag.py");
+    let o = Command::new(python).arg(script).arg(data).arg(out).args(extra).output().expect("python runs");
+    assert!(o.status.success(), "make_bag.py: {}", String::from_utf8_lossy(&o.stderr));
+    true
+}
+
+fn same_maps(a: &Path, b: &Path) {
+    let (a, b) = (mrfmap::map::Map::load(a).unwrap(), mrfmap::map::Map::load(b).unwrap());
+    assert_eq!(a.voxels.len(), b.voxels.len());
+    assert!(a.voxels.iter().all(|(k, v)| b.voxels.get(k) == Some(v)), "maps differ");
+}
+
+#[test]
+fn ros2_bags_build_the_same_map_as_the_dataset() {
+    let dir = workdir("bags");
+    let data = dataset(&dir);
+    let tum = dir.join("tum.mrfmap");
+    assert!(run(&["build", s(&data), "-o", s(&tum), "--resolution", "0.05", "-q"]).status.success());
+    let direct = dir.join("direct");
+    if !make_bag(&data, &direct, &["--direct"]) {
+        return;
+    }
+    let o = run(&["bag", "info", s(&direct)]);
+    let info = stdout(&o);
+    assert!(info.contains("/camera/depth/image_rect_raw") && info.contains("sensor_msgs/msg/Image"), "{info}");
+    assert!(info.contains("TF frames: camera_depth_optical, map"), "{info}");
+    let depth = ["--depth-topic", "/camera/depth/image_rect_raw"];
+    let build = |bag: &Path, out: &Path, extra: &[&str]| {
+        let mut args = vec!["build", s(bag), "-o", s(out), "--resolution", "0.05"];
+        args.extend_from_slice(extra);
+        run(&args)
+    };
+    // Poses from /tf, from a /tf + /tf_static chain, and from a pose topic: the same map as
+    // the TUM layout of the same data.
+    let m = dir.join("bag.mrfmap");
+    let o = build(&direct, &m, &[depth[0], depth[1], "--fixed-frame", "map"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    same_maps(&tum, &m);
+    let chain = dir.join("chain");
+    make_bag(&data, &chain, &[]);
+    assert!(build(&chain, &m, &[depth[0], depth[1], "--fixed-frame", "map"]).status.success());
+    same_maps(&tum, &m);
+    let file = chain.join("chain.mcap");
+    assert!(build(&file, &m, &[depth[0], depth[1], "--pose-topic", "/camera/pose"]).status.success());
+    same_maps(&tum, &m);
+    // What goes wrong says which topic and what.
+    let o = build(&direct, &m, &[depth[0], depth[1], "--fixed-frame", "map", "--camera-info-topic", "/nope"]);
+    assert!(!o.status.success() && stderr(&o).contains("no CameraInfo on /nope"), "{}", stderr(&o));
+    let o = build(&direct, &m, &[depth[0], depth[1], "--fixed-frame", "world"]);
+    let err = stderr(&o);
+    assert!(!o.status.success() && err.contains("does not connect") && err.contains("no image"), "{err}");
+    let info = ["--camera-info-topic", "/camera/depth/camera_info"];
+    let o = build(&direct, &m, &["--depth-topic", "/camera/pose", info[0], info[1], "--fixed-frame", "map"]);
+    assert!(!o.status.success() && stderr(&o).contains("not sensor_msgs/msg/Image"), "{}", stderr(&o));
+    let o = build(&direct, &m, &["--fixed-frame", "map"]);
+    assert!(!o.status.success() && stderr(&o).contains("--depth-topic"), "{}", stderr(&o));
+    let bytes = std::fs::read(direct.join("direct.mcap")).unwrap();
+    let cut = dir.join("cut.mcap");
+    std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
+    let o = build(&cut, &m, &[depth[0], depth[1], "--fixed-frame", "map"]);
+    assert!(!o.status.success() && stderr(&o).contains("MCAP"), "{}", stderr(&o));
+}

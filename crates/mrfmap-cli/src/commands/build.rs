@@ -15,6 +15,7 @@ use mrfmap::inference::{
 use mrfmap::limits;
 use mrfmap::map::Map;
 use mrfmap::rays::{Aabb, RayLimits};
+use mrfmap::source::bag::{Bag, BagOptions, bag_frames};
 use mrfmap::source::{BeamSpacing, CarmenLog, CarmenOptions, Dataset, Misses};
 
 /// Options that shape how any map is built from a dataset.
@@ -164,10 +165,60 @@ impl LaserOptions {
     }
 }
 
+/// Where a ROS 2 bag's depth images and poses are.
+#[derive(clap::Args, Clone)]
+pub struct BagArgs {
+    /// Bags: the depth image topic (sensor_msgs/Image, 16UC1 mm or 32FC1 m).
+    #[arg(long)]
+    pub depth_topic: Option<String>,
+    /// Bags: the CameraInfo topic (default: camera_info beside the depth topic).
+    #[arg(long)]
+    pub camera_info_topic: Option<String>,
+    /// Bags: poses from /tf and /tf_static, of each image's frame in this frame.
+    #[arg(long)]
+    pub fixed_frame: Option<String>,
+    /// Bags: poses from this PoseStamped or Odometry topic (the camera's pose) instead.
+    #[arg(long)]
+    pub pose_topic: Option<String>,
+    /// Bags: images between two pose samples farther apart than this (seconds) are skipped.
+    #[arg(long, default_value_t = 0.1, value_parser = super::positive)]
+    pub max_pose_gap: f64,
+}
+
+impl BagArgs {
+    /// Is `path` a bag (a `.mcap` file or a folder with `metadata.yaml`)?
+    pub fn is_bag(path: &std::path::Path) -> bool {
+        path.extension().is_some_and(|e| e == "mcap" || e == "db3") || path.join("metadata.yaml").is_file()
+    }
+
+    /// The bag's depth frames with poses; skipped images are summarised in a warning.
+    pub fn frames(&self, path: &std::path::Path, noise: Option<&std::path::Path>) -> Result<Vec<Frame>> {
+        let depth_topic = self.depth_topic.clone().context("a bag needs --depth-topic (see `mrfmap bag info`)")?;
+        let bag = Bag::open(path)?;
+        let options = BagOptions {
+            depth_topic,
+            camera_info_topic: self.camera_info_topic.clone(),
+            fixed_frame: self.fixed_frame.clone(),
+            pose_topic: self.pose_topic.clone(),
+            max_pose_gap: self.max_pose_gap,
+        };
+        let noise = noise.map(NoiseModel::load).transpose()?;
+        let (frames, skipped) = bag_frames(&bag, &options, noise)?;
+        if let Some(first) = skipped.first() {
+            tracing::warn!("{}: {} image(s) skipped without a pose (first: {first})", path.display(), skipped.len());
+        }
+        if frames.is_empty() {
+            bail!("{}: no image of {} has a pose", path.display(), options.depth_topic);
+        }
+        Ok(frames)
+    }
+}
+
 #[derive(clap::Args)]
 pub struct Args {
-    /// Dataset folder (TUM / ICL-NUIM layout with camera.toml), or a CARMEN laser log file
-    /// (plain or .gz; a one-voxel-thick map at z = 0 to one voxel).
+    /// Dataset folder (TUM / ICL-NUIM layout with camera.toml), a CARMEN laser log file
+    /// (plain or .gz; a one-voxel-thick map at z = 0 to one voxel), or a ROS 2 bag (.mcap or a
+    /// bag folder; with --depth-topic and --fixed-frame or --pose-topic).
     dataset: PathBuf,
     /// Output map file.
     #[arg(short, long)]
@@ -188,6 +239,8 @@ pub struct Args {
     options: MapOptions,
     #[command(flatten)]
     laser: LaserOptions,
+    #[command(flatten)]
+    bag: BagArgs,
 }
 
 /// What a build did.
@@ -374,7 +427,25 @@ pub fn run(a: Args) -> Result<()> {
         bail!("{}: the output folder {} does not exist", a.output.display(), folder.display());
     }
     let config = a.options.config(kind, a.resolution)?;
-    let (report, indices_used) = if a.dataset.is_file() {
+    let (report, indices_used) = if BagArgs::is_bag(&a.dataset) {
+        let frames = a.bag.frames(&a.dataset, a.options.noise.as_deref())?;
+        let indices = select_frames(frames.len(), &a.frames, &a.exclude)?;
+        let points = frames.iter().flat_map(|f| {
+            let p: [f64; 3] = f.pose.translation.vector.into();
+            let reach = f.depth.data().iter().fold(0.0f32, |m, z| m.max(*z)) as f64 * 1.5;
+            [[p[0] - reach, p[1] - reach, p[2] - reach], [p[0] + reach, p[1] + reach, p[2] + reach]]
+        });
+        let length: f64 = frames.iter().map(|f| f.depth.data().iter().map(|z| *z as f64 * 1.2).sum::<f64>()).sum();
+        check_build(&config, Extent::new(points, length, &config), indices.len())?;
+        tracing::info!(
+            "{}: {} of {} depth images, engine {kind}, resolution {} m",
+            a.dataset.display(),
+            indices.len(),
+            frames.len(),
+            a.resolution
+        );
+        (build_map(&indices, &config, |i| Ok(frames[i].clone()))?, indices)
+    } else if a.dataset.is_file() {
         let log = a.laser.open(&a.dataset)?;
         let scans = a.laser.scans(&log, a.resolution, a.options.noise.as_deref())?;
         let indices = select_frames(scans.len(), &a.frames, &a.exclude)?;

@@ -6,6 +6,8 @@
 //! experiments (it produces [`crate::frames::RangeScan`]s, not depth images). [`CarmenLog`]
 //! reads real planar-laser logs (CARMEN format, plain or gzip) into range scans.
 
+#[cfg(feature = "bags")]
+pub mod bag;
 mod carmen;
 mod dataset;
 mod depth_png;

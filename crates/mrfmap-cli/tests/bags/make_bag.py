@@ -1,0 +1,107 @@
+"""Writes a ROS 2 bag (MCAP, or sqlite3 with --db3) of a TUM-layout dataset, without ROS: the
+depth images on /camera/depth/image_rect_raw (32FC1 metres, the exact values mrfmap reads from
+the PNGs), CameraInfo beside them, and the poses as TF: map -> base on /tf (at each image's
+stamp) and base -> camera_depth_optical on /tf_static, or, with --direct, map ->
+camera_depth_optical on /tf. Also a PoseStamped topic /camera/pose. Needs the `rosbags` package.
+
+usage: make_bag.py DATASET OUT [--direct] [--db3]
+"""
+
+import struct
+import sys
+import zlib
+from pathlib import Path
+
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
+
+
+def read_png16(path):
+    """A 16-bit grayscale, non-interlaced PNG as (width, height, rows of ints)."""
+    data = path.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n", path
+    pos, idat, width, height = 8, b"", 0, 0
+    while pos < len(data):
+        n = struct.unpack(">I", data[pos : pos + 4])[0]
+        kind, body = data[pos + 4 : pos + 8], data[pos + 8 : pos + 8 + n]
+        if kind == b"IHDR":
+            width, height, depth, colour, _, _, interlace = struct.unpack(">IIBBBBB", body)
+            assert depth == 16 and colour == 0 and interlace == 0, path
+        elif kind == b"IDAT":
+            idat += body
+        pos += 12 + n
+    raw, stride, bpp = zlib.decompress(idat), width * 2, 2
+    rows, prev = [], bytearray(stride)
+    for y in range(height):
+        f, line = raw[y * (stride + 1)], bytearray(raw[y * (stride + 1) + 1 : (y + 1) * (stride + 1)])
+        for i in range(stride):
+            a = line[i - bpp] if i >= bpp else 0
+            b, c = prev[i], (prev[i - bpp] if i >= bpp else 0)
+            if f == 1:
+                line[i] = (line[i] + a) & 255
+            elif f == 2:
+                line[i] = (line[i] + b) & 255
+            elif f == 3:
+                line[i] = (line[i] + (a + b) // 2) & 255
+            elif f == 4:
+                p = a + b - c
+                pa, pb, pc = abs(p - a), abs(p - b), abs(p - c)
+                line[i] = (line[i] + (a if pa <= pb and pa <= pc else b if pb <= pc else c)) & 255
+        rows.append([line[2 * x] << 8 | line[2 * x + 1] for x in range(width)])
+        prev = line
+    return width, height, rows
+
+
+def f32(x):
+    return struct.unpack("<f", struct.pack("<f", x))[0]
+
+
+def table(path):
+    return [l.split() for l in path.read_text().splitlines() if l.strip() and not l.startswith("#")]
+
+
+def main():
+    root, out = Path(sys.argv[1]), Path(sys.argv[2])
+    direct, db3 = "--direct" in sys.argv, "--db3" in sys.argv
+    cam = dict(l.split("=", 1) for l in (root / "camera.toml").read_text().splitlines() if "=" in l)
+    cam = {k.strip(): float(v) for k, v in cam.items()}
+    inv = f32(1.0 / cam["depth_scale"])
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    Image, Info, Header, Time = (ts.types[n] for n in ["sensor_msgs/msg/Image", "sensor_msgs/msg/CameraInfo", "std_msgs/msg/Header", "builtin_interfaces/msg/Time"])
+    TF, TS, Tr, V3, Q = (ts.types[n] for n in ["tf2_msgs/msg/TFMessage", "geometry_msgs/msg/TransformStamped", "geometry_msgs/msg/Transform", "geometry_msgs/msg/Vector3", "geometry_msgs/msg/Quaternion"])
+    PS, Pose, Point, ROI = (ts.types[n] for n in ["geometry_msgs/msg/PoseStamped", "geometry_msgs/msg/Pose", "geometry_msgs/msg/Point", "sensor_msgs/msg/RegionOfInterest"])
+    import numpy as np
+
+    poses = {float(r[0]): [float(v) for v in r[1:8]] for r in table(root / "groundtruth.txt")}
+    plugin = StoragePlugin.SQLITE3 if db3 else StoragePlugin.MCAP
+    with Writer(out, version=8, storage_plugin=plugin) as w:
+        c_img = w.add_connection("/camera/depth/image_rect_raw", Image.__msgtype__, typestore=ts)
+        c_info = w.add_connection("/camera/depth/camera_info", Info.__msgtype__, typestore=ts)
+        c_tf = w.add_connection("/tf", TF.__msgtype__, typestore=ts)
+        c_static = w.add_connection("/tf_static", TF.__msgtype__, typestore=ts)
+        c_pose = w.add_connection("/camera/pose", PS.__msgtype__, typestore=ts)
+        stamp = lambda t: Time(sec=int(t), nanosec=int(round((t - int(t)) * 1e9)))
+        tfs = lambda t, parent, child, p: TS(header=Header(stamp=stamp(t), frame_id=parent), child_frame_id=child, transform=Tr(translation=V3(x=p[0], y=p[1], z=p[2]), rotation=Q(x=p[3], y=p[4], z=p[5], w=p[6])))
+        ser = lambda m: ts.serialize_cdr(m, m.__msgtype__)
+        optical = "camera_depth_optical"
+        base_cam = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]  # identity: exact composition
+        if not direct:
+            w.write(c_static, 0, ser(TF(transforms=[tfs(0.0, "base", optical, base_cam)])))
+        for t, path in ((float(r[0]), r[1]) for r in table(root / "depth.txt")):
+            p = min(poses.items(), key=lambda kv: abs(kv[0] - t))[1]
+            ns = int(round(t * 1e9)) + 1
+            width, height, rows = read_png16(root / path)
+            depth = np.array([f32(v * inv) for row in rows for v in row], dtype="<f4")
+            hdr = Header(stamp=stamp(t), frame_id=optical)
+            k = np.array([cam["fx"], 0, cam["cx"], 0, cam["fy"], cam["cy"], 0, 0, 1], dtype=np.float64)
+            info = Info(header=hdr, height=height, width=width, distortion_model="plumb_bob", d=np.zeros(5), k=k, r=np.eye(3).flatten(), p=np.zeros(12), binning_x=0, binning_y=0, roi=ROI(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
+            w.write(c_info, ns, ser(info))
+            child = optical if direct else "base"
+            w.write(c_tf, ns, ser(TF(transforms=[tfs(t, "map", child, p)])))
+            img = Image(header=hdr, height=height, width=width, encoding="32FC1", is_bigendian=0, step=width * 4, data=depth.view(np.uint8))
+            w.write(c_img, ns, ser(img))
+            w.write(c_pose, ns, ser(PS(header=Header(stamp=stamp(t), frame_id="map"), pose=Pose(position=Point(x=p[0], y=p[1], z=p[2]), orientation=Q(x=p[3], y=p[4], z=p[5], w=p[6])))))
+
+
+if __name__ == "__main__":
+    main()

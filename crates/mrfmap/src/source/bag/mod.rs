@@ -1,0 +1,245 @@
+//! Robot recordings: ROS 2 bags in MCAP, read without ROS (cargo feature `bags`).
+//!
+//! A bag is one `.mcap` file or a bag folder (`metadata.yaml` beside one or more `.mcap`
+//! files, read in name order). Messages are decoded by hand from CDR ([`msgs`]): depth images
+//! (`sensor_msgs/Image`, 16UC1 millimetres or 32FC1 metres), `sensor_msgs/CameraInfo`,
+//! `tf2_msgs/TFMessage` on `/tf` and `/tf_static`, `geometry_msgs/PoseStamped` and
+//! `nav_msgs/Odometry`. [`bag_frames`] turns a depth topic into [`Frame`]s: intrinsics from
+//! the camera-info topic (by default the `camera_info` beside the image topic, the ROS
+//! convention), each image's pose in a fixed frame from the transform tree ([`tf`]) or from a
+//! pose topic, interpolated at the image's stamp. The ROS optical frame (z forward, x right,
+//! y down) is mrfmap's camera frame, so poses are used as they are. Images without a pose
+//! within the allowed gap are reported and skipped.
+
+pub mod cdr;
+pub mod msgs;
+pub mod tf;
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use crate::error::{Error, Result};
+use crate::frames::{Camera, Frame, NoiseModel, Pose};
+
+/// A topic of a bag.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TopicInfo {
+    /// Topic name.
+    pub topic: String,
+    /// Message type (`sensor_msgs/msg/Image`, ...).
+    pub msgtype: String,
+    /// Messages.
+    pub count: u64,
+    /// Log time of the first and last message (seconds).
+    pub span: (f64, f64),
+}
+
+/// An opened bag: the files its messages are in.
+#[derive(Clone, Debug)]
+pub struct Bag {
+    /// What the user named.
+    pub path: PathBuf,
+    files: Vec<PathBuf>,
+}
+
+impl Bag {
+    /// Opens a `.mcap` file or a bag folder.
+    pub fn open(path: &Path) -> Result<Self> {
+        let files = if path.is_dir() {
+            let mut f: Vec<PathBuf> = std::fs::read_dir(path)
+                .map_err(|e| Error::io(path, e))?
+                .filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|p| p.extension().is_some_and(|e| e == "mcap"))
+                .collect();
+            f.sort();
+            if f.is_empty() {
+                let db3 = std::fs::read_dir(path)
+                    .map_err(|e| Error::io(path, e))?
+                    .filter_map(|e| e.ok())
+                    .any(|e| e.path().extension().is_some_and(|x| x == "db3"));
+                let why = if db3 {
+                    "it holds .db3 files (sqlite3 bags are not read yet: convert with `ros2 bag convert` to MCAP)"
+                } else {
+                    "no .mcap files"
+                };
+                return Err(Error::file(path, format!("not a bag this build reads: {why}")));
+            }
+            f
+        } else if path.extension().is_some_and(|e| e == "mcap") {
+            vec![path.to_path_buf()]
+        } else if path.exists() {
+            return Err(Error::file(path, "not a bag this build reads: expected a .mcap file or a bag folder"));
+        } else {
+            return Err(Error::io(path, std::io::Error::from(std::io::ErrorKind::NotFound)));
+        };
+        Ok(Bag { path: path.to_path_buf(), files })
+    }
+
+    /// Calls `visit(topic, type, log_time_seconds, cdr_bytes)` for every message on `topics`
+    /// (all topics when empty), in file order.
+    pub fn for_each(&self, topics: &[&str], mut visit: impl FnMut(&str, &str, f64, &[u8]) -> Result<()>) -> Result<()> {
+        for file in &self.files {
+            let bytes = std::fs::read(file).map_err(|e| Error::io(file, e))?;
+            let stream = mcap::MessageStream::new(&bytes).map_err(|e| Error::file(file, format!("not MCAP: {e}")))?;
+            for m in stream {
+                let m = m.map_err(|e| Error::file(file, format!("corrupt or truncated MCAP: {e}")))?;
+                let topic = m.channel.topic.as_str();
+                if !topics.is_empty() && !topics.contains(&topic) {
+                    continue;
+                }
+                let msgtype = m.channel.schema.as_ref().map_or("", |s| s.name.as_str());
+                if m.channel.message_encoding != "cdr" {
+                    return Err(Error::file(
+                        file,
+                        format!("{topic}: message encoding {:?} is not CDR (a ROS 2 bag?)", m.channel.message_encoding),
+                    ));
+                }
+                visit(topic, msgtype, m.log_time as f64 * 1e-9, &m.data)?;
+            }
+        }
+        Ok(())
+    }
+
+    /// Topics, types, message counts and time spans.
+    pub fn topics(&self) -> Result<Vec<TopicInfo>> {
+        let mut t: BTreeMap<String, TopicInfo> = BTreeMap::new();
+        self.for_each(&[], |topic, msgtype, time, _| {
+            let e = t.entry(topic.to_string()).or_insert_with(|| TopicInfo {
+                topic: topic.to_string(),
+                msgtype: msgtype.to_string(),
+                count: 0,
+                span: (time, time),
+            });
+            e.count += 1;
+            e.span = (e.span.0.min(time), e.span.1.max(time));
+            Ok(())
+        })?;
+        Ok(t.into_values().collect())
+    }
+
+    /// The transform tree of `/tf` and `/tf_static`.
+    pub fn tf(&self) -> Result<tf::TfBuffer> {
+        let mut buffer = tf::TfBuffer::default();
+        self.for_each(&["/tf", "/tf_static"], |topic, _, _, data| {
+            let entries = msgs::tf_message(data).map_err(|m| Error::file(&self.path, format!("{topic}: {m}")))?;
+            for (h, child, t) in entries {
+                buffer.insert(&h.frame_id, &child, h.stamp, &t, topic == "/tf_static");
+            }
+            Ok(())
+        })?;
+        buffer.finish();
+        Ok(buffer)
+    }
+}
+
+/// Where a bag's depth images and their poses come from.
+#[derive(Clone, Debug, PartialEq)]
+pub struct BagOptions {
+    /// The depth image topic.
+    pub depth_topic: String,
+    /// The camera-info topic (default: `camera_info` beside the image topic).
+    pub camera_info_topic: Option<String>,
+    /// Poses from the transform tree, in this frame...
+    pub fixed_frame: Option<String>,
+    /// ...or from this `PoseStamped` / `Odometry` topic (the camera's pose).
+    pub pose_topic: Option<String>,
+    /// Largest gap between two pose samples an image's stamp may fall in (seconds).
+    pub max_pose_gap: f64,
+}
+
+/// The camera-info topic ROS puts beside an image topic: `/ns/image_rect_raw` -> `/ns/camera_info`.
+pub fn sibling_camera_info(image_topic: &str) -> String {
+    match image_topic.rsplit_once('/') {
+        Some((ns, _)) => format!("{ns}/camera_info"),
+        None => "camera_info".into(),
+    }
+}
+
+/// Depth frames of `options.depth_topic` with poses; also the images skipped and why.
+pub fn bag_frames(bag: &Bag, options: &BagOptions, noise: Option<NoiseModel>) -> Result<(Vec<Frame>, Vec<String>)> {
+    let bad = |m: String| Error::file(&bag.path, m);
+    let info_topic = options.camera_info_topic.clone().unwrap_or_else(|| sibling_camera_info(&options.depth_topic));
+    let mut camera = None;
+    bag.for_each(&[info_topic.as_str()], |topic, _, _, data| {
+        if camera.is_none() {
+            let (_, w, h, k) = msgs::camera_info(data).map_err(|m| bad(format!("{topic}: {m}")))?;
+            camera = Some(Camera::new(k[0], k[4], k[2], k[5], w, h, 1000.0).map_err(|e| bad(format!("{topic}: {e}")))?);
+        }
+        Ok(())
+    })?;
+    let camera =
+        camera.ok_or_else(|| bad(format!("no CameraInfo on {info_topic} (name it with --camera-info-topic)")))?;
+    let poses: Box<dyn Fn(&str, f64) -> std::result::Result<Pose, String>> =
+        match (&options.pose_topic, &options.fixed_frame) {
+            (Some(topic), _) => {
+                let mut series = tf::Series::default();
+                bag.for_each(&[topic.as_str()], |t, msgtype, _, data| {
+                    let odometry = msgtype.contains("Odometry");
+                    let (h, p) = msgs::pose(data, odometry).map_err(|m| bad(format!("{t}: {m}")))?;
+                    series.push(h.stamp, &p);
+                    Ok(())
+                })?;
+                if series.is_empty() {
+                    return Err(bad(format!("no messages on the pose topic {topic}")));
+                }
+                series.sort();
+                let gap = options.max_pose_gap;
+                Box::new(move |_, t| series.at(t, gap))
+            }
+            (None, Some(fixed)) => {
+                let tf = bag.tf()?;
+                if tf.frames().is_empty() {
+                    return Err(bad("no transforms on /tf or /tf_static: name a --pose-topic".into()));
+                }
+                let (fixed, gap) = (fixed.clone(), options.max_pose_gap);
+                Box::new(move |frame, t| tf.lookup(&fixed, frame, t, gap))
+            }
+            (None, None) => {
+                return Err(Error::Invalid("a bag needs --fixed-frame (poses from /tf) or --pose-topic".into()));
+            }
+        };
+    let noise = noise.map(std::sync::Arc::new);
+    let (mut frames, mut skipped) = (Vec::new(), Vec::new());
+    let mut images = 0;
+    let mut last_stamp = f64::NEG_INFINITY;
+    bag.for_each(&[options.depth_topic.as_str()], |topic, msgtype, _, data| {
+        if !msgtype.is_empty() && msgtype != "sensor_msgs/msg/Image" {
+            return Err(bad(format!("{topic} carries {msgtype}, not sensor_msgs/msg/Image")));
+        }
+        images += 1;
+        let (h, depth) = msgs::depth_image(data).map_err(|m| bad(format!("{topic}: image {images}: {m}")))?;
+        if (depth.width(), depth.height()) != (camera.width, camera.height) {
+            return Err(bad(format!(
+                "{topic}: image {images} is {}x{} but {info_topic} says {}x{}",
+                depth.width(),
+                depth.height(),
+                camera.width,
+                camera.height
+            )));
+        }
+        if h.stamp < last_stamp {
+            tracing::warn!("{topic}: image {images} is stamped before the one logged before it");
+        }
+        last_stamp = last_stamp.max(h.stamp);
+        match poses(&h.frame_id, h.stamp) {
+            Ok(pose) => frames.push(Frame {
+                index: frames.len(),
+                timestamp: h.stamp,
+                depth,
+                pose,
+                camera,
+                noise: noise.clone(),
+            }),
+            Err(why) => skipped.push(format!("image {images} at {:.3} s: {why}", h.stamp)),
+        }
+        Ok(())
+    })?;
+    if images == 0 {
+        return Err(bad(format!("no messages on {}", options.depth_topic)));
+    }
+    frames.sort_by(|a, b| a.timestamp.total_cmp(&b.timestamp));
+    for (i, f) in frames.iter_mut().enumerate() {
+        f.index = i;
+    }
+    Ok((frames, skipped))
+}

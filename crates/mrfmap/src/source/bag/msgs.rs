@@ -1,0 +1,217 @@
+//! The ROS 2 messages mrfmap reads from bags, decoded by hand from CDR: a depth image, its
+//! camera's intrinsics, transforms and poses. Fields we do not use are read past, not kept.
+
+use super::cdr::{Cdr, CdrResult};
+use crate::frames::DepthImage;
+
+/// `std_msgs/Header`: stamp (seconds) and frame id.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Header {
+    /// Stamp in seconds.
+    pub stamp: f64,
+    /// Coordinate frame.
+    pub frame_id: String,
+}
+
+fn header(c: &mut Cdr) -> CdrResult<Header> {
+    let sec = c.i32("header.stamp.sec")?;
+    let nanosec = c.u32("header.stamp.nanosec")?;
+    Ok(Header { stamp: sec as f64 + nanosec as f64 * 1e-9, frame_id: c.string("header.frame_id")? })
+}
+
+/// A rigid transform: translation and unit quaternion `[x, y, z, w]`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Transform {
+    /// Translation (metres).
+    pub translation: [f64; 3],
+    /// Rotation as a quaternion `[x, y, z, w]`.
+    pub rotation: [f64; 4],
+}
+
+fn transform(c: &mut Cdr, what: &str) -> CdrResult<Transform> {
+    Ok(Transform { translation: c.f64s::<3>(what)?, rotation: c.f64s::<4>(what)? })
+}
+
+/// `sensor_msgs/Image` holding depth: `16UC1` (millimetres) or `32FC1` (metres).
+pub fn depth_image(data: &[u8]) -> CdrResult<(Header, DepthImage)> {
+    let mut c = Cdr::new(data)?;
+    let h = header(&mut c)?;
+    let height = c.u32("height")?;
+    let width = c.u32("width")?;
+    let encoding = c.string("encoding")?;
+    let big = c.u8("is_bigendian")? != 0;
+    let step = c.u32("step")? as usize;
+    let pixels = c.byte_seq("data")?;
+    let (bytes_per, scale) = match encoding.as_str() {
+        "16UC1" | "mono16" => (2, 1e-3),
+        "32FC1" => (4, 1.0),
+        other => return Err(format!("depth image encoding {other:?} is not 16UC1 (mm) or 32FC1 (m)")),
+    };
+    let (w, h_px) = (width as usize, height as usize);
+    if w == 0 || h_px == 0 || w > crate::frames::MAX_SIDE as usize || h_px > crate::frames::MAX_SIDE as usize {
+        return Err(format!("image size {width}x{height} is not a depth image's"));
+    }
+    if step < w * bytes_per || pixels.len() < step * (h_px - 1) + w * bytes_per {
+        return Err(format!(
+            "{width}x{height} {encoding} image with step {step} needs more than its {} bytes",
+            pixels.len()
+        ));
+    }
+    let mut out = Vec::with_capacity(w * h_px);
+    for row in 0..h_px {
+        let line = &pixels[row * step..row * step + w * bytes_per];
+        for px in line.chunks_exact(bytes_per) {
+            let z = if bytes_per == 2 {
+                let v = if big { u16::from_be_bytes([px[0], px[1]]) } else { u16::from_le_bytes([px[0], px[1]]) };
+                v as f32 * scale as f32
+            } else {
+                let b = [px[0], px[1], px[2], px[3]];
+                if big { f32::from_be_bytes(b) } else { f32::from_le_bytes(b) }
+            };
+            // NaN, infinity and 0 are "no return", as in the dataset reader.
+            out.push(if z.is_finite() && z > 0.0 { z } else { 0.0 });
+        }
+    }
+    let image = DepthImage::from_vec(width, height, out).ok_or("image size does not match its data")?;
+    Ok((h, image))
+}
+
+/// `sensor_msgs/CameraInfo`: size and the intrinsic matrix `K` (row-major 3x3).
+pub fn camera_info(data: &[u8]) -> CdrResult<(Header, u32, u32, [f64; 9])> {
+    let mut c = Cdr::new(data)?;
+    let h = header(&mut c)?;
+    let height = c.u32("height")?;
+    let width = c.u32("width")?;
+    c.string("distortion_model")?;
+    let n = c.count(8, "d")?;
+    for _ in 0..n {
+        c.f64("d")?;
+    }
+    let k = c.f64s::<9>("k")?;
+    Ok((h, width, height, k))
+}
+
+/// `tf2_msgs/TFMessage`: `(header, child_frame_id, transform)` per entry.
+pub fn tf_message(data: &[u8]) -> CdrResult<Vec<(Header, String, Transform)>> {
+    let mut c = Cdr::new(data)?;
+    // A TransformStamped takes at least 4 + 4 + 4 + 4 + 56 bytes.
+    let n = c.count(72, "transforms")?;
+    (0..n)
+        .map(|_| {
+            let h = header(&mut c)?;
+            let child = c.string("child_frame_id")?;
+            Ok((h, child, transform(&mut c, "transform")?))
+        })
+        .collect()
+}
+
+/// `geometry_msgs/PoseStamped` or `nav_msgs/Odometry`: the header and the pose (for odometry,
+/// of `child_frame_id` in the header's frame).
+pub fn pose(data: &[u8], odometry: bool) -> CdrResult<(Header, Transform)> {
+    let mut c = Cdr::new(data)?;
+    let h = header(&mut c)?;
+    if odometry {
+        c.string("child_frame_id")?;
+    }
+    Ok((h, transform(&mut c, "pose")?))
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    /// A little-endian CDR message built field by field, aligned as CDR aligns.
+    #[derive(Default)]
+    pub struct Writer(pub Vec<u8>);
+
+    impl Writer {
+        pub fn new() -> Self {
+            Writer(vec![0, 1, 0, 0])
+        }
+        fn align(&mut self, n: usize) {
+            while (self.0.len() - 4) % n != 0 {
+                self.0.push(0);
+            }
+        }
+        pub fn u8(&mut self, v: u8) -> &mut Self {
+            self.0.push(v);
+            self
+        }
+        pub fn u32(&mut self, v: u32) -> &mut Self {
+            self.align(4);
+            self.0.extend_from_slice(&v.to_le_bytes());
+            self
+        }
+        pub fn f64(&mut self, v: f64) -> &mut Self {
+            self.align(8);
+            self.0.extend_from_slice(&v.to_le_bytes());
+            self
+        }
+        pub fn string(&mut self, s: &str) -> &mut Self {
+            self.u32(s.len() as u32 + 1);
+            self.0.extend_from_slice(s.as_bytes());
+            self.0.push(0);
+            self
+        }
+        pub fn bytes(&mut self, b: &[u8]) -> &mut Self {
+            self.u32(b.len() as u32);
+            self.0.extend_from_slice(b);
+            self
+        }
+        pub fn header(&mut self, sec: i32, nsec: u32, frame: &str) -> &mut Self {
+            self.u32(sec as u32).u32(nsec).string(frame)
+        }
+    }
+
+    use super::*;
+
+    #[test]
+    fn depth_images_in_both_encodings_and_bad_ones() {
+        let mut w = Writer::new();
+        w.header(10, 500_000_000, "cam").u32(1).u32(2).string("16UC1").u8(0).u32(4);
+        w.bytes(&[0xE8, 0x03, 0, 0]); // 1000 mm, 0 (no return)
+        let (h, img) = depth_image(&w.0).unwrap();
+        assert_eq!((h.stamp, h.frame_id.as_str()), (10.5, "cam"));
+        assert_eq!((img.get(0, 0), img.get(1, 0)), (Some(1.0), None));
+        let mut w = Writer::new();
+        w.header(0, 0, "cam").u32(1).u32(1).string("32FC1").u8(1).u32(4);
+        w.bytes(&2.5f32.to_be_bytes());
+        assert_eq!(depth_image(&w.0).unwrap().1.get(0, 0), Some(2.5));
+        let mut w = Writer::new();
+        w.header(0, 0, "cam").u32(1).u32(1).string("rgb8").u8(0).u32(3).bytes(&[1, 2, 3]);
+        assert!(depth_image(&w.0).unwrap_err().contains("rgb8"));
+        let mut w = Writer::new();
+        w.header(0, 0, "cam").u32(2).u32(2).string("16UC1").u8(0).u32(4).bytes(&[0; 6]);
+        assert!(depth_image(&w.0).unwrap_err().contains("needs more than"));
+        assert!(depth_image(&w.0[..20]).unwrap_err().contains("message ends inside"));
+    }
+
+    #[test]
+    fn camera_info_tf_and_poses() {
+        let mut w = Writer::new();
+        w.header(1, 0, "cam").u32(480).u32(640).string("plumb_bob").u32(5);
+        for _ in 0..5 {
+            w.f64(0.0);
+        }
+        for v in [525.0, 0.0, 319.5, 0.0, 525.0, 239.5, 0.0, 0.0, 1.0] {
+            w.f64(v);
+        }
+        let (_, width, height, k) = camera_info(&w.0).unwrap();
+        assert_eq!((width, height, k[0], k[2], k[5]), (640, 480, 525.0, 319.5, 239.5));
+        let mut w = Writer::new();
+        w.u32(1).header(2, 0, "map").string("base");
+        for v in [1.0, 2.0, 3.0, 0.0, 0.0, 0.0, 1.0] {
+            w.f64(v);
+        }
+        let tf = tf_message(&w.0).unwrap();
+        assert_eq!((tf[0].0.frame_id.as_str(), tf[0].1.as_str()), ("map", "base"));
+        assert_eq!(tf[0].2.translation, [1.0, 2.0, 3.0]);
+        let mut w = Writer::new();
+        w.u32(1_000_000).header(2, 0, "map");
+        assert!(tf_message(&w.0).unwrap_err().contains("do not fit"));
+        let mut w = Writer::new();
+        w.header(3, 0, "odom").string("base");
+        for v in [4.0, 5.0, 6.0, 0.0, 0.0, 0.0, 1.0] {
+            w.f64(v);
+        }
+        assert_eq!(pose(&w.0, true).unwrap().1.translation, [4.0, 5.0, 6.0]);
+    }
+}

@@ -849,6 +849,11 @@ fn ros2_bags_build_the_same_map_as_the_dataset() {
     let file = chain.join("chain.mcap");
     assert!(build(&file, &m, &[depth[0], depth[1], "--pose-topic", "/camera/pose"]).status.success());
     same_maps(&tum, &m);
+    let sqlite = dir.join("sqlite");
+    make_bag(&data, &sqlite, &["--db3"]);
+    let o = build(&sqlite, &m, &[depth[0], depth[1], "--fixed-frame", "map"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    same_maps(&tum, &m);
     // What goes wrong says which topic and what.
     let o = build(&direct, &m, &[depth[0], depth[1], "--fixed-frame", "map", "--camera-info-topic", "/nope"]);
     assert!(!o.status.success() && stderr(&o).contains("no CameraInfo on /nope"), "{}", stderr(&o));

@@ -1,7 +1,7 @@
-//! Robot recordings: ROS 2 bags in MCAP, read without ROS (cargo feature `bags`).
+//! Robot recordings: ROS 2 bags in MCAP or sqlite3, read without ROS (cargo feature `bags`).
 //!
-//! A bag is one `.mcap` file or a bag folder (`metadata.yaml` beside one or more `.mcap`
-//! files, read in name order). Messages are decoded by hand from CDR ([`msgs`]): depth images
+//! A bag is one `.mcap` or `.db3` file or a bag folder (`metadata.yaml` beside one or more
+//! such files, read in name order). Messages are decoded by hand from CDR ([`msgs`]): depth images
 //! (`sensor_msgs/Image`, 16UC1 millimetres or 32FC1 metres), `sensor_msgs/CameraInfo`,
 //! `tf2_msgs/TFMessage` on `/tf` and `/tf_static`, `geometry_msgs/PoseStamped` and
 //! `nav_msgs/Odometry`. [`bag_frames`] turns a depth topic into [`Frame`]s: intrinsics from
@@ -43,42 +43,39 @@ pub struct Bag {
 }
 
 impl Bag {
-    /// Opens a `.mcap` file or a bag folder.
+    /// Opens a `.mcap` or `.db3` file, or a bag folder.
     pub fn open(path: &Path) -> Result<Self> {
+        let is_bag_file = |p: &Path| p.extension().is_some_and(|e| e == "mcap" || e == "db3");
         let files = if path.is_dir() {
             let mut f: Vec<PathBuf> = std::fs::read_dir(path)
                 .map_err(|e| Error::io(path, e))?
                 .filter_map(|e| e.ok().map(|e| e.path()))
-                .filter(|p| p.extension().is_some_and(|e| e == "mcap"))
+                .filter(|p| is_bag_file(p))
                 .collect();
             f.sort();
             if f.is_empty() {
-                let db3 = std::fs::read_dir(path)
-                    .map_err(|e| Error::io(path, e))?
-                    .filter_map(|e| e.ok())
-                    .any(|e| e.path().extension().is_some_and(|x| x == "db3"));
-                let why = if db3 {
-                    "it holds .db3 files (sqlite3 bags are not read yet: convert with `ros2 bag convert` to MCAP)"
-                } else {
-                    "no .mcap files"
-                };
-                return Err(Error::file(path, format!("not a bag this build reads: {why}")));
+                return Err(Error::file(path, "not a bag: no .mcap or .db3 files in the folder"));
             }
             f
-        } else if path.extension().is_some_and(|e| e == "mcap") {
+        } else if is_bag_file(path) {
+            if !path.exists() {
+                return Err(Error::io(path, std::io::Error::from(std::io::ErrorKind::NotFound)));
+            }
             vec![path.to_path_buf()]
-        } else if path.exists() {
-            return Err(Error::file(path, "not a bag this build reads: expected a .mcap file or a bag folder"));
         } else {
-            return Err(Error::io(path, std::io::Error::from(std::io::ErrorKind::NotFound)));
+            return Err(Error::file(path, "not a bag: expected a .mcap or .db3 file, or a bag folder"));
         };
         Ok(Bag { path: path.to_path_buf(), files })
     }
 
     /// Calls `visit(topic, type, log_time_seconds, cdr_bytes)` for every message on `topics`
-    /// (all topics when empty), in file order.
+    /// (all topics when empty), file by file in name order, each in log-time order.
     pub fn for_each(&self, topics: &[&str], mut visit: impl FnMut(&str, &str, f64, &[u8]) -> Result<()>) -> Result<()> {
         for file in &self.files {
+            if file.extension().is_some_and(|e| e == "db3") {
+                sqlite_for_each(file, topics, &mut visit)?;
+                continue;
+            }
             let bytes = std::fs::read(file).map_err(|e| Error::io(file, e))?;
             let stream = mcap::MessageStream::new(&bytes).map_err(|e| Error::file(file, format!("not MCAP: {e}")))?;
             for m in stream {
@@ -130,6 +127,44 @@ impl Bag {
         buffer.finish();
         Ok(buffer)
     }
+}
+
+/// The messages of a ROS 2 sqlite3 bag file (`topics` and `messages` tables), in time order.
+fn sqlite_for_each(
+    file: &Path,
+    topics: &[&str],
+    visit: &mut impl FnMut(&str, &str, f64, &[u8]) -> Result<()>,
+) -> Result<()> {
+    use rusqlite::{Connection, OpenFlags};
+    let bad = |e: rusqlite::Error| Error::file(file, format!("not a readable ROS 2 sqlite3 bag: {e}"));
+    let db = Connection::open_with_flags(file, OpenFlags::SQLITE_OPEN_READ_ONLY).map_err(bad)?;
+    let mut names = std::collections::HashMap::new();
+    let mut stmt = db.prepare("SELECT id, name, type, serialization_format FROM topics").map_err(bad)?;
+    let rows = stmt
+        .query_map([], |r| {
+            Ok((r.get::<_, i64>(0)?, r.get::<_, String>(1)?, r.get::<_, String>(2)?, r.get::<_, String>(3)?))
+        })
+        .map_err(bad)?;
+    for row in rows {
+        let (id, name, msgtype, format) = row.map_err(bad)?;
+        if topics.is_empty() || topics.contains(&name.as_str()) {
+            if format != "cdr" {
+                return Err(Error::file(file, format!("{name}: serialization {format:?} is not CDR")));
+            }
+            names.insert(id, (name, msgtype));
+        }
+    }
+    let mut stmt = db.prepare("SELECT topic_id, timestamp, data FROM messages ORDER BY timestamp").map_err(bad)?;
+    let mut rows = stmt.query([]).map_err(bad)?;
+    while let Some(row) = rows.next().map_err(bad)? {
+        let id: i64 = row.get(0).map_err(bad)?;
+        if let Some((name, msgtype)) = names.get(&id) {
+            let time: i64 = row.get(1).map_err(bad)?;
+            let data = row.get_ref(2).map_err(bad)?.as_blob().map_err(|e| Error::file(file, format!("{name}: {e}")))?;
+            visit(name, msgtype, time as f64 * 1e-9, data)?;
+        }
+    }
+    Ok(())
 }
 
 /// Where a bag's depth images and their poses come from.

@@ -76,6 +76,9 @@ impl Bag {
                 sqlite_for_each(file, topics, &mut visit)?;
                 continue;
             }
+            // The file is read whole (MCAP's reader wants a slice); say so before trying.
+            let size = std::fs::metadata(file).map_err(|e| Error::io(file, e))?.len();
+            crate::limits::check_memory(&format!("reading {}", file.display()), size as f64, "split the bag")?;
             let bytes = std::fs::read(file).map_err(|e| Error::io(file, e))?;
             let stream = mcap::MessageStream::new(&bytes).map_err(|e| Error::file(file, format!("not MCAP: {e}")))?;
             for m in stream {

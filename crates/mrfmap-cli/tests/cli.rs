@@ -686,6 +686,21 @@ fn square_room_log(dir: &Path) -> PathBuf {
     path
 }
 
+/// The 2D grid at `yaml` shows the square room of `square_room_log`: walls at x = +-2 m
+/// occupied, the inside free.
+fn check_square_room(yaml: &Path, what: &str) {
+    let g = mrfmap::outputs::read_map_server(yaml).unwrap();
+    let cell = |x: f64, y: f64| {
+        let (i, j) = (((x - g.origin[0]) / g.resolution) as usize, ((y - g.origin[1]) / g.resolution) as usize);
+        g.cells[j * g.width + i]
+    };
+    // Ranges are written to the millimetre, so a wall's hits land on either side of it.
+    let wall = |x: f64, y: f64| cell(x - 0.01, y) == Some(true) || cell(x + 0.01, y) == Some(true);
+    assert!(wall(2.0, 0.52), "{what}: the east wall");
+    assert!(wall(-2.0, -0.27), "{what}: the west wall");
+    assert_eq!(cell(0.8, 0.1), Some(false), "{what}: the room");
+}
+
 #[test]
 fn laser_log_build_grid2d_view_and_experiment() {
     let dir = workdir("laser");
@@ -698,16 +713,7 @@ fn laser_log_build_grid2d_view_and_experiment() {
         let o = run(&["export", s(&map), "--grid2d", s(&yaml), "--sigma"]);
         assert!(o.status.success(), "{}", stderr(&o));
         assert!(dir.join(format!("{engine}-sigma.pgm")).is_file());
-        let g = mrfmap::outputs::read_map_server(&yaml).unwrap();
-        let cell = |x: f64, y: f64| {
-            let (i, j) = (((x - g.origin[0]) / g.resolution) as usize, ((y - g.origin[1]) / g.resolution) as usize);
-            g.cells[j * g.width + i]
-        };
-        // Ranges are written to the millimetre, so a wall's hits land on either side of it.
-        let wall = |x: f64, y: f64| cell(x - 0.01, y) == Some(true) || cell(x + 0.01, y) == Some(true);
-        assert!(wall(2.0, 0.52), "{engine}: the east wall");
-        assert!(wall(-2.0, -0.27), "{engine}: the west wall");
-        assert_eq!(cell(0.8, 0.1), Some(false), "{engine}: the room");
+        check_square_room(&yaml, engine);
         // The picture of a one-layer map is the 2D grid with its sigma, no camera needed.
         let png = dir.join(format!("{engine}.png"));
         let o = run(&["view", s(&map), "-o", s(&png)]);
@@ -854,6 +860,21 @@ fn ros2_bags_build_the_same_map_as_the_dataset() {
     let o = build(&sqlite, &m, &[depth[0], depth[1], "--fixed-frame", "map"]);
     assert!(o.status.success(), "{}", stderr(&o));
     same_maps(&tum, &m);
+    // A planar laser in a bag: LaserScan posed by /tf, the CARMEN test's room.
+    let scans = dir.join("scans");
+    let o = Command::new(std::env::var_os("MRFMAP_ROSBAGS_PYTHON").unwrap())
+        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/bags/make_scan_bag.py"))
+        .arg(&scans)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    for engine in ["logodds", "crm"] {
+        let o = build(&scans, &m, &["--scan-topic", "/scan", "--fixed-frame", "map", "--engine", engine]);
+        assert!(o.status.success() && stdout(&o).contains("4 frames"), "{}", stderr(&o));
+        let yaml = dir.join(format!("scan-{engine}.yaml"));
+        assert!(run(&["export", s(&m), "--grid2d", s(&yaml)]).status.success());
+        check_square_room(&yaml, engine);
+    }
     // What goes wrong says which topic and what.
     let o = build(&direct, &m, &[depth[0], depth[1], "--fixed-frame", "map", "--camera-info-topic", "/nope"]);
     assert!(!o.status.success() && stderr(&o).contains("no CameraInfo on /nope"), "{}", stderr(&o));

@@ -15,7 +15,7 @@ use mrfmap::inference::{
 use mrfmap::limits;
 use mrfmap::map::Map;
 use mrfmap::rays::{Aabb, RayLimits};
-use mrfmap::source::bag::{Bag, BagOptions, bag_frames};
+use mrfmap::source::bag::{Bag, BagOptions, bag_frames, bag_scans};
 use mrfmap::source::{BeamSpacing, CarmenLog, CarmenOptions, Dataset, Misses};
 
 /// Options that shape how any map is built from a dataset.
@@ -171,6 +171,9 @@ pub struct BagArgs {
     /// Bags: the depth image topic (sensor_msgs/Image, 16UC1 mm or 32FC1 m).
     #[arg(long)]
     pub depth_topic: Option<String>,
+    /// Bags: a sensor_msgs/LaserScan topic to map instead of depth images (logodds, crm).
+    #[arg(long, conflicts_with = "depth_topic")]
+    pub scan_topic: Option<String>,
     /// Bags: the CameraInfo topic (default: camera_info beside the depth topic).
     #[arg(long)]
     pub camera_info_topic: Option<String>,
@@ -191,27 +194,52 @@ impl BagArgs {
         path.extension().is_some_and(|e| e == "mcap" || e == "db3") || path.join("metadata.yaml").is_file()
     }
 
-    /// The bag's depth frames with poses; skipped images are summarised in a warning.
-    pub fn frames(&self, path: &std::path::Path, noise: Option<&std::path::Path>) -> Result<Vec<Frame>> {
-        let depth_topic = self.depth_topic.clone().context("a bag needs --depth-topic (see `mrfmap bag info`)")?;
-        let bag = Bag::open(path)?;
-        let options = BagOptions {
+    fn options(&self, depth_topic: String) -> BagOptions {
+        BagOptions {
             depth_topic,
             camera_info_topic: self.camera_info_topic.clone(),
             fixed_frame: self.fixed_frame.clone(),
             pose_topic: self.pose_topic.clone(),
             max_pose_gap: self.max_pose_gap,
-        };
-        let noise = noise.map(NoiseModel::load).transpose()?;
-        let (frames, skipped) = bag_frames(&bag, &options, noise)?;
-        if let Some(first) = skipped.first() {
-            tracing::warn!("{}: {} image(s) skipped without a pose (first: {first})", path.display(), skipped.len());
         }
-        if frames.is_empty() {
-            bail!("{}: no image of {} has a pose", path.display(), options.depth_topic);
-        }
-        Ok(frames)
     }
+
+    /// The bag's depth frames with poses; skipped images are summarised in a warning.
+    pub fn frames(&self, path: &std::path::Path, noise: Option<&std::path::Path>) -> Result<Vec<Frame>> {
+        let depth_topic =
+            self.depth_topic.clone().context("a bag needs --depth-topic or --scan-topic (see `mrfmap bag info`)")?;
+        let options = self.options(depth_topic);
+        let noise = noise.map(NoiseModel::load).transpose()?;
+        let (frames, skipped) = bag_frames(&Bag::open(path)?, &options, noise)?;
+        posed(path, &options.depth_topic, frames, &skipped)
+    }
+
+    /// The bag's laser scans with poses (noise: `--noise`'s aggregate, else the engine's).
+    pub fn scans(
+        &self,
+        path: &std::path::Path,
+        topic: &str,
+        noise: Option<&std::path::Path>,
+    ) -> Result<Vec<RangeScan>> {
+        let noise = noise.map(|p| NoiseModel::load(p).map(|n| NoiseModel::aggregate(n.bias, n.std))).transpose()?;
+        let (scans, skipped) = bag_scans(&Bag::open(path)?, topic, &self.options(String::new()), noise)?;
+        posed(path, topic, scans, &skipped)
+    }
+}
+
+/// `items` with a warning for the `skipped` ones, or an error when none has a pose.
+fn posed<T>(path: &std::path::Path, topic: &str, items: Vec<T>, skipped: &[String]) -> Result<Vec<T>> {
+    if let Some(first) = skipped.first() {
+        tracing::warn!(
+            "{}: {topic}: {} message(s) skipped without a pose (first: {first})",
+            path.display(),
+            skipped.len()
+        );
+    }
+    if items.is_empty() {
+        bail!("{}: no image or scan of {topic} has a pose", path.display());
+    }
+    Ok(items)
 }
 
 #[derive(clap::Args)]
@@ -427,7 +455,14 @@ pub fn run(a: Args) -> Result<()> {
         bail!("{}: the output folder {} does not exist", a.output.display(), folder.display());
     }
     let config = a.options.config(kind, a.resolution)?;
-    let (report, indices_used) = if BagArgs::is_bag(&a.dataset) {
+    let (report, indices_used) = if let (true, Some(topic)) = (BagArgs::is_bag(&a.dataset), &a.bag.scan_topic) {
+        let scans = a.bag.scans(&a.dataset, topic, a.options.noise.as_deref())?;
+        let indices = select_frames(scans.len(), &a.frames, &a.exclude)?;
+        let chosen: Vec<RangeScan> = indices.iter().map(|&i| scans[i].clone()).collect();
+        check_build(&config, scan_extent(&chosen, &config), chosen.len())?;
+        tracing::info!("{}: {} of {} scans, engine {kind}", a.dataset.display(), indices.len(), scans.len());
+        (build_map(&indices, &config, |i| Ok(scans[i].clone()))?, indices)
+    } else if BagArgs::is_bag(&a.dataset) {
         let frames = a.bag.frames(&a.dataset, a.options.noise.as_deref())?;
         let indices = select_frames(frames.len(), &a.frames, &a.exclude)?;
         let points = frames.iter().flat_map(|f| {

@@ -3,8 +3,8 @@
 //! A bag is one `.mcap` or `.db3` file or a bag folder (`metadata.yaml` beside one or more
 //! such files, read in name order). Messages are decoded by hand from CDR ([`msgs`]): depth images
 //! (`sensor_msgs/Image`, 16UC1 millimetres or 32FC1 metres), `sensor_msgs/CameraInfo`,
-//! `tf2_msgs/TFMessage` on `/tf` and `/tf_static`, `geometry_msgs/PoseStamped` and
-//! `nav_msgs/Odometry`. [`bag_frames`] turns a depth topic into [`Frame`]s: intrinsics from
+//! `tf2_msgs/TFMessage` on `/tf` and `/tf_static`, `geometry_msgs/PoseStamped`,
+//! `nav_msgs/Odometry` and `sensor_msgs/LaserScan` ([`bag_scans`]). [`bag_frames`] turns a depth topic into [`Frame`]s: intrinsics from
 //! the camera-info topic (by default the `camera_info` beside the image topic, the ROS
 //! convention), each image's pose in a fixed frame from the transform tree ([`tf`]) or from a
 //! pose topic, interpolated at the image's stamp. The ROS optical frame (z forward, x right,
@@ -19,7 +19,7 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use crate::error::{Error, Result};
-use crate::frames::{Camera, Frame, NoiseModel, Pose};
+use crate::frames::{Beam, Camera, Frame, NoiseModel, Pose, RangeScan};
 
 /// A topic of a bag.
 #[derive(Clone, Debug, PartialEq)]
@@ -193,6 +193,82 @@ pub fn sibling_camera_info(image_topic: &str) -> String {
     }
 }
 
+/// A function giving a frame's pose in the fixed frame at a stamp: from the TF tree, or from
+/// the pose topic (the sensor's pose, whatever the frame).
+type PoseSource = Box<dyn Fn(&str, f64) -> std::result::Result<Pose, String>>;
+
+fn pose_source(bag: &Bag, options: &BagOptions) -> Result<PoseSource> {
+    let bad = |m: String| Error::file(&bag.path, m);
+    Ok(match (&options.pose_topic, &options.fixed_frame) {
+        (Some(topic), _) => {
+            let mut series = tf::Series::default();
+            bag.for_each(&[topic.as_str()], |t, msgtype, _, data| {
+                let odometry = msgtype.contains("Odometry");
+                let (h, p) = msgs::pose(data, odometry).map_err(|m| bad(format!("{t}: {m}")))?;
+                series.push(h.stamp, &p);
+                Ok(())
+            })?;
+            if series.is_empty() {
+                return Err(bad(format!("no messages on the pose topic {topic}")));
+            }
+            series.sort();
+            let gap = options.max_pose_gap;
+            Box::new(move |_, t| series.at(t, gap))
+        }
+        (None, Some(fixed)) => {
+            let tf = bag.tf()?;
+            if tf.frames().is_empty() {
+                return Err(bad("no transforms on /tf or /tf_static: name a --pose-topic".into()));
+            }
+            let (fixed, gap) = (fixed.clone(), options.max_pose_gap);
+            Box::new(move |frame, t| tf.lookup(&fixed, frame, t, gap))
+        }
+        (None, None) => {
+            return Err(Error::Invalid("a bag needs --fixed-frame (poses from /tf) or --pose-topic".into()));
+        }
+    })
+}
+
+/// Range scans of the `sensor_msgs/LaserScan` topic `topic`, posed as `options` says (its
+/// depth topic is not used); also the scans skipped and why.
+pub fn bag_scans(
+    bag: &Bag,
+    topic: &str,
+    options: &BagOptions,
+    noise: Option<NoiseModel>,
+) -> Result<(Vec<RangeScan>, Vec<String>)> {
+    let bad = |m: String| Error::file(&bag.path, m);
+    let poses = pose_source(bag, options)?;
+    let noise = noise.map(std::sync::Arc::new);
+    let (mut scans, mut skipped, mut n) = (Vec::new(), Vec::new(), 0);
+    bag.for_each(&[topic], |t, msgtype, _, data| {
+        if !msgtype.is_empty() && msgtype != "sensor_msgs/msg/LaserScan" {
+            return Err(bad(format!("{t} carries {msgtype}, not sensor_msgs/msg/LaserScan")));
+        }
+        n += 1;
+        let (h, beams, max_range) = msgs::laser_scan(data).map_err(|m| bad(format!("{t}: scan {n}: {m}")))?;
+        match poses(&h.frame_id, h.stamp) {
+            Ok(pose) => {
+                let beams = beams.into_iter().map(|(a, range)| Beam { dir: [a.cos(), a.sin(), 0.0], range }).collect();
+                let scan = RangeScan::new(0, pose, beams, max_range, noise.clone())
+                    .map_err(|e| bad(format!("{t}: scan {n}: {e}")))?;
+                scans.push((h.stamp, scan));
+            }
+            Err(why) => skipped.push(format!("scan {n} at {:.3} s: {why}", h.stamp)),
+        }
+        Ok(())
+    })?;
+    if n == 0 {
+        return Err(bad(format!("no messages on {topic}")));
+    }
+    scans.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let scans = scans.into_iter().enumerate().map(|(i, (_, mut s))| {
+        s.index = i;
+        s
+    });
+    Ok((scans.collect(), skipped))
+}
+
 /// Depth frames of `options.depth_topic` with poses; also the images skipped and why.
 pub fn bag_frames(bag: &Bag, options: &BagOptions, noise: Option<NoiseModel>) -> Result<(Vec<Frame>, Vec<String>)> {
     let bad = |m: String| Error::file(&bag.path, m);
@@ -207,35 +283,7 @@ pub fn bag_frames(bag: &Bag, options: &BagOptions, noise: Option<NoiseModel>) ->
     })?;
     let camera =
         camera.ok_or_else(|| bad(format!("no CameraInfo on {info_topic} (name it with --camera-info-topic)")))?;
-    let poses: Box<dyn Fn(&str, f64) -> std::result::Result<Pose, String>> =
-        match (&options.pose_topic, &options.fixed_frame) {
-            (Some(topic), _) => {
-                let mut series = tf::Series::default();
-                bag.for_each(&[topic.as_str()], |t, msgtype, _, data| {
-                    let odometry = msgtype.contains("Odometry");
-                    let (h, p) = msgs::pose(data, odometry).map_err(|m| bad(format!("{t}: {m}")))?;
-                    series.push(h.stamp, &p);
-                    Ok(())
-                })?;
-                if series.is_empty() {
-                    return Err(bad(format!("no messages on the pose topic {topic}")));
-                }
-                series.sort();
-                let gap = options.max_pose_gap;
-                Box::new(move |_, t| series.at(t, gap))
-            }
-            (None, Some(fixed)) => {
-                let tf = bag.tf()?;
-                if tf.frames().is_empty() {
-                    return Err(bad("no transforms on /tf or /tf_static: name a --pose-topic".into()));
-                }
-                let (fixed, gap) = (fixed.clone(), options.max_pose_gap);
-                Box::new(move |frame, t| tf.lookup(&fixed, frame, t, gap))
-            }
-            (None, None) => {
-                return Err(Error::Invalid("a bag needs --fixed-frame (poses from /tf) or --pose-topic".into()));
-            }
-        };
+    let poses = pose_source(bag, options)?;
     let noise = noise.map(std::sync::Arc::new);
     let (mut frames, mut skipped) = (Vec::new(), Vec::new());
     let mut images = 0;

@@ -76,6 +76,37 @@ pub fn depth_image(data: &[u8]) -> CdrResult<(Header, DepthImage)> {
     Ok((h, image))
 }
 
+/// `sensor_msgs/LaserScan` as beams in the scan's frame: `(angle, range or None for no
+/// return)`; readings below `range_min` (or NaN) measured nothing and are dropped, readings at
+/// or beyond `range_max` (or infinite) are misses. Also `range_max`.
+pub fn laser_scan(data: &[u8]) -> CdrResult<(Header, Vec<(f64, Option<f64>)>, f64)> {
+    let mut c = Cdr::new(data)?;
+    let h = header(&mut c)?;
+    let angle_min = c.f32("angle_min")? as f64;
+    c.f32("angle_max")?;
+    let increment = c.f32("angle_increment")? as f64;
+    c.f32("time_increment")?;
+    c.f32("scan_time")?;
+    let (range_min, range_max) = (c.f32("range_min")? as f64, c.f32("range_max")? as f64);
+    if !(range_max > 0.0 && range_max.is_finite() && increment.is_finite() && angle_min.is_finite()) {
+        return Err(format!(
+            "range_max {range_max}, angle_min {angle_min} or angle_increment {increment} is not usable"
+        ));
+    }
+    let n = c.count(4, "ranges")?;
+    let mut beams = Vec::with_capacity(n);
+    for k in 0..n {
+        let r = c.f32("ranges")? as f64;
+        let angle = angle_min + k as f64 * increment;
+        if r >= range_max {
+            beams.push((angle, None));
+        } else if r >= range_min && r > 0.0 {
+            beams.push((angle, Some(r)));
+        }
+    }
+    Ok((h, beams, range_max))
+}
+
 /// `sensor_msgs/CameraInfo`: size and the intrinsic matrix `K` (row-major 3x3).
 pub fn camera_info(data: &[u8]) -> CdrResult<(Header, u32, u32, [f64; 9])> {
     let mut c = Cdr::new(data)?;
@@ -182,6 +213,23 @@ pub(crate) mod tests {
         w.header(0, 0, "cam").u32(2).u32(2).string("16UC1").u8(0).u32(4).bytes(&[0; 6]);
         assert!(depth_image(&w.0).unwrap_err().contains("needs more than"));
         assert!(depth_image(&w.0[..20]).unwrap_err().contains("message ends inside"));
+    }
+
+    #[test]
+    fn laser_scans() {
+        let mut w = Writer::new();
+        w.header(5, 0, "laser");
+        for v in [-1.0f32, 1.0, 0.5, 0.0, 0.1, 0.2, 10.0] {
+            w.u32(v.to_bits());
+        }
+        w.u32(5);
+        for r in [1.0f32, f32::NAN, 0.1, 10.0, f32::INFINITY] {
+            w.u32(r.to_bits());
+        }
+        w.u32(0);
+        let (h, beams, max) = laser_scan(&w.0).unwrap();
+        assert_eq!((h.frame_id.as_str(), max), ("laser", 10.0));
+        assert_eq!(beams, vec![(-1.0, Some(1.0)), (0.5, None), (1.0, None)]);
     }
 
     #[test]

@@ -868,12 +868,13 @@ fn ros2_bags_build_the_same_map_as_the_dataset() {
         .output()
         .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    for engine in ["logodds", "crm"] {
-        let o = build(&scans, &m, &["--scan-topic", "/scan", "--fixed-frame", "map", "--engine", engine]);
+    for (engine, topic) in [("logodds", "--scan-topic"), ("crm", "--scan-topic"), ("logodds", "--cloud-topic")] {
+        let source = if topic == "--scan-topic" { "/scan" } else { "/points" };
+        let o = build(&scans, &m, &[topic, source, "--fixed-frame", "map", "--engine", engine]);
         assert!(o.status.success() && stdout(&o).contains("4 frames"), "{}", stderr(&o));
-        let yaml = dir.join(format!("scan-{engine}.yaml"));
+        let yaml = dir.join(format!("scan-{engine}-{}.yaml", &source[1..]));
         assert!(run(&["export", s(&m), "--grid2d", s(&yaml)]).status.success());
-        check_square_room(&yaml, engine);
+        check_square_room(&yaml, &format!("{engine} from {source}"));
     }
     // What goes wrong says which topic and what.
     let o = build(&direct, &m, &[depth[0], depth[1], "--fixed-frame", "map", "--camera-info-topic", "/nope"]);

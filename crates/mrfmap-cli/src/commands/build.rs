@@ -171,8 +171,9 @@ pub struct BagArgs {
     /// Bags: the depth image topic (sensor_msgs/Image, 16UC1 mm or 32FC1 m).
     #[arg(long)]
     pub depth_topic: Option<String>,
-    /// Bags: a sensor_msgs/LaserScan topic to map instead of depth images (logodds, crm).
-    #[arg(long, conflicts_with = "depth_topic")]
+    /// Bags: a sensor_msgs/LaserScan or PointCloud2 topic to map instead of depth images
+    /// (logodds, crm); a cloud's points are beams from the sensor's origin.
+    #[arg(long, visible_alias = "cloud-topic", conflicts_with = "depth_topic")]
     pub scan_topic: Option<String>,
     /// Bags: the CameraInfo topic (default: camera_info beside the depth topic).
     #[arg(long)]

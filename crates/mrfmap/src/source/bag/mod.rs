@@ -4,7 +4,8 @@
 //! such files, read in name order). Messages are decoded by hand from CDR ([`msgs`]): depth images
 //! (`sensor_msgs/Image`, 16UC1 millimetres or 32FC1 metres), `sensor_msgs/CameraInfo`,
 //! `tf2_msgs/TFMessage` on `/tf` and `/tf_static`, `geometry_msgs/PoseStamped`,
-//! `nav_msgs/Odometry` and `sensor_msgs/LaserScan` ([`bag_scans`]). [`bag_frames`] turns a depth topic into [`Frame`]s: intrinsics from
+//! `nav_msgs/Odometry`, and `sensor_msgs/LaserScan` and `sensor_msgs/PointCloud2` as range scans
+//! ([`bag_scans`]). [`bag_frames`] turns a depth topic into [`Frame`]s: intrinsics from
 //! the camera-info topic (by default the `camera_info` beside the image topic, the ROS
 //! convention), each image's pose in a fixed frame from the transform tree ([`tf`]) or from a
 //! pose topic, interpolated at the image's stamp. The ROS optical frame (z forward, x right,
@@ -229,8 +230,9 @@ fn pose_source(bag: &Bag, options: &BagOptions) -> Result<PoseSource> {
     })
 }
 
-/// Range scans of the `sensor_msgs/LaserScan` topic `topic`, posed as `options` says (its
-/// depth topic is not used); also the scans skipped and why.
+/// Range scans of the `sensor_msgs/LaserScan` or `sensor_msgs/PointCloud2` topic `topic`
+/// (a cloud's points as beams from the sensor's origin), posed as `options` says (its depth
+/// topic is not used); also the scans skipped and why.
 pub fn bag_scans(
     bag: &Bag,
     topic: &str,
@@ -242,14 +244,29 @@ pub fn bag_scans(
     let noise = noise.map(std::sync::Arc::new);
     let (mut scans, mut skipped, mut n) = (Vec::new(), Vec::new(), 0);
     bag.for_each(&[topic], |t, msgtype, _, data| {
-        if !msgtype.is_empty() && msgtype != "sensor_msgs/msg/LaserScan" {
-            return Err(bad(format!("{t} carries {msgtype}, not sensor_msgs/msg/LaserScan")));
-        }
         n += 1;
-        let (h, beams, max_range) = msgs::laser_scan(data).map_err(|m| bad(format!("{t}: scan {n}: {m}")))?;
+        let decoded = match msgtype {
+            "sensor_msgs/msg/LaserScan" => msgs::laser_scan(data).map(|(h, beams, max_range)| {
+                let beams = beams.into_iter().map(|(a, range)| Beam { dir: [a.cos(), a.sin(), 0.0], range }).collect();
+                (h, beams, max_range)
+            }),
+            // A cloud's points are beams from the sensor's origin, every one a return.
+            "sensor_msgs/msg/PointCloud2" => msgs::point_cloud(data).map(|(h, points)| {
+                let beams: Vec<Beam> = points
+                    .into_iter()
+                    .filter_map(|p| {
+                        let r = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
+                        (r > 0.0).then(|| Beam { dir: p.map(|v| v / r), range: Some(r) })
+                    })
+                    .collect();
+                let max_range = beams.iter().filter_map(|b| b.range).fold(1e-3, f64::max) * 1.01;
+                (h, beams, max_range)
+            }),
+            other => return Err(bad(format!("{t} carries {other:?}, not sensor_msgs/msg/LaserScan or PointCloud2"))),
+        };
+        let (h, beams, max_range) = decoded.map_err(|m| bad(format!("{t}: message {n}: {m}")))?;
         match poses(&h.frame_id, h.stamp) {
             Ok(pose) => {
-                let beams = beams.into_iter().map(|(a, range)| Beam { dir: [a.cos(), a.sin(), 0.0], range }).collect();
                 let scan = RangeScan::new(0, pose, beams, max_range, noise.clone())
                     .map_err(|e| bad(format!("{t}: scan {n}: {e}")))?;
                 scans.push((h.stamp, scan));

@@ -107,6 +107,58 @@ pub fn laser_scan(data: &[u8]) -> CdrResult<(Header, Vec<(f64, Option<f64>)>, f6
     Ok((h, beams, range_max))
 }
 
+/// `sensor_msgs/PointCloud2`: the points' `x y z` (float32 fields, at any offsets, either
+/// byte order), NaN and infinite points dropped.
+pub fn point_cloud(data: &[u8]) -> CdrResult<(Header, Vec<[f64; 3]>)> {
+    let mut c = Cdr::new(data)?;
+    let h = header(&mut c)?;
+    let (height, width) = (c.u32("height")? as usize, c.u32("width")? as usize);
+    let nf = c.count(13, "fields")?;
+    let mut offsets = [None; 3];
+    for _ in 0..nf {
+        let name = c.string("field name")?;
+        let offset = c.u32("field offset")? as usize;
+        let datatype = c.u8("field datatype")?;
+        c.u32("field count")?;
+        if let Some(axis) = ["x", "y", "z"].iter().position(|a| *a == name) {
+            if datatype != 7 {
+                return Err(format!("field {name} has datatype {datatype}, not FLOAT32 (7)"));
+            }
+            offsets[axis] = Some(offset);
+        }
+    }
+    let [Some(ox), Some(oy), Some(oz)] = offsets else { return Err("the cloud has no x, y and z fields".into()) };
+    let big = c.u8("is_bigendian")? != 0;
+    let point_step = c.u32("point_step")? as usize;
+    let row_step = c.u32("row_step")? as usize;
+    let bytes = c.byte_seq("data")?;
+    let last = ox.max(oy).max(oz) + 4;
+    if point_step < last || row_step < width.saturating_mul(point_step) {
+        return Err(format!("point_step {point_step} / row_step {row_step} cannot hold fields up to byte {last}"));
+    }
+    if height.saturating_mul(row_step) > bytes.len() {
+        return Err(format!(
+            "{width}x{height} points of {point_step} bytes need more than the {} bytes sent",
+            bytes.len()
+        ));
+    }
+    let f = |b: &[u8], o: usize| {
+        let a = [b[o], b[o + 1], b[o + 2], b[o + 3]];
+        (if big { f32::from_be_bytes(a) } else { f32::from_le_bytes(a) }) as f64
+    };
+    let mut points = Vec::with_capacity(width * height);
+    for row in 0..height {
+        for i in 0..width {
+            let p = &bytes[row * row_step + i * point_step..];
+            let xyz = [f(p, ox), f(p, oy), f(p, oz)];
+            if xyz.iter().all(|v| v.is_finite()) {
+                points.push(xyz);
+            }
+        }
+    }
+    Ok((h, points))
+}
+
 /// `sensor_msgs/CameraInfo`: size and the intrinsic matrix `K` (row-major 3x3).
 pub fn camera_info(data: &[u8]) -> CdrResult<(Header, u32, u32, [f64; 9])> {
     let mut c = Cdr::new(data)?;
@@ -230,6 +282,26 @@ pub(crate) mod tests {
         let (h, beams, max) = laser_scan(&w.0).unwrap();
         assert_eq!((h.frame_id.as_str(), max), ("laser", 10.0));
         assert_eq!(beams, vec![(-1.0, Some(1.0)), (0.5, None), (1.0, None)]);
+    }
+
+    #[test]
+    fn point_clouds_at_any_offsets() {
+        let mut w = Writer::new();
+        w.header(1, 0, "lidar").u32(1).u32(3).u32(3);
+        for (name, offset) in [("y", 8u32), ("x", 4), ("z", 12)] {
+            w.string(name).u32(offset).u8(7).u32(1);
+        }
+        w.u8(0).u32(16).u32(48);
+        let mut data = Vec::new();
+        for p in [[1.0f32, 2.0, 3.0], [f32::NAN, 0.0, 0.0], [4.0, 5.0, 6.0]] {
+            data.extend_from_slice(&[0u8; 4]);
+            for v in [p[0], p[1], p[2]] {
+                data.extend_from_slice(&v.to_le_bytes());
+            }
+        }
+        w.bytes(&data).u8(0);
+        let (_, pts) = point_cloud(&w.0).unwrap();
+        assert_eq!(pts, vec![[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]);
     }
 
     #[test]

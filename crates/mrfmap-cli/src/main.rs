@@ -31,6 +31,8 @@ enum Command {
     Build(commands::build::Args),
     /// Look into a ROS 2 bag: `bag info BAG`.
     Bag(commands::bag::Args),
+    /// Write a ROS 2 bag's posed depth images as a TUM-layout dataset.
+    ExportDataset(commands::bag::ExportArgs),
     /// Learn a per-patch noise model (noise.toml) from measured and true depth images.
     Calibrate(commands::calibrate::Args),
     /// Look at a noise model: `noise plot noise.toml -o curves.png`.
@@ -117,6 +119,7 @@ fn main() {
         match cli.command {
             Command::Build(a) => commands::build::run(a),
             Command::Bag(a) => commands::bag::run(a),
+            Command::ExportDataset(a) => commands::bag::export_dataset(a),
             Command::Calibrate(a) => commands::calibrate::run(a),
             Command::Noise(a) => commands::noise::run(a),
             Command::Export(a) => commands::export::run(a),

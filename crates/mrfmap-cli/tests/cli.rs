@@ -860,6 +860,13 @@ fn ros2_bags_build_the_same_map_as_the_dataset() {
     let o = build(&sqlite, &m, &[depth[0], depth[1], "--fixed-frame", "map"]);
     assert!(o.status.success(), "{}", stderr(&o));
     same_maps(&tum, &m);
+    // The bag as a dataset again: the same map.
+    let exported = dir.join("exported");
+    let o = run(&["export-dataset", s(&direct), "-o", s(&exported), depth[0], depth[1], "--fixed-frame", "map"]);
+    assert!(o.status.success() && stdout(&o).contains("4 frames"), "{}", stderr(&o));
+    let again = dir.join("again.mrfmap");
+    assert!(run(&["build", s(&exported), "-o", s(&again), "--resolution", "0.05", "-q"]).status.success());
+    same_maps(&tum, &again);
     // A planar laser in a bag: LaserScan posed by /tf, the CARMEN test's room.
     let scans = dir.join("scans");
     let o = Command::new(std::env::var_os("MRFMAP_ROSBAGS_PYTHON").unwrap())

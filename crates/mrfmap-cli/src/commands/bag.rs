@@ -1,9 +1,11 @@
 //! `mrfmap bag info BAG`: what a ROS 2 bag holds: topics, types, counts, rates, and the frames
-//! of its transform tree.
+//! of its transform tree; `mrfmap export-dataset BAG -o DIR`: its depth images as a dataset.
 
 use std::path::PathBuf;
 
 use anyhow::Result;
+use mrfmap::frames::NoiseModel;
+use mrfmap::source::DatasetWriter;
 use mrfmap::source::bag::Bag;
 
 #[derive(clap::Args)]
@@ -40,4 +42,36 @@ pub fn run(a: Args) -> Result<()> {
             Ok(())
         }
     }
+}
+
+#[derive(clap::Args)]
+pub struct ExportArgs {
+    /// A .mcap or .db3 file, or a bag folder.
+    bag: PathBuf,
+    /// Output dataset folder (TUM layout).
+    #[arg(short, long)]
+    output: PathBuf,
+    #[command(flatten)]
+    topics: crate::commands::build::BagArgs,
+    /// A noise model to write as the dataset's noise.toml.
+    #[arg(long)]
+    noise: Option<PathBuf>,
+}
+
+/// `mrfmap export-dataset`: a bag's posed depth images as a TUM-layout dataset, for `loo`,
+/// `compare`, `eval` and other tools. Depth PNGs use depth_scale 5000 (0.2 mm steps, up to
+/// 13.1 m), or 1000 (1 mm, up to 65.5 m) when a depth is beyond 13.1 m.
+pub fn export_dataset(a: ExportArgs) -> Result<()> {
+    let frames = a.topics.frames(&a.bag, None)?;
+    let farthest = frames.iter().flat_map(|f| f.depth.data().iter().copied()).fold(0.0f32, f32::max);
+    let mut camera = frames[0].camera;
+    camera.depth_scale = if farthest > 13.1 { 1000.0 } else { 5000.0 };
+    let mut writer = DatasetWriter::create(&a.output, camera, false)?;
+    for f in &frames {
+        writer.add(f.timestamp, &f.pose, &f.depth, None)?;
+    }
+    let noise = a.noise.as_deref().map(NoiseModel::load).transpose()?;
+    let n = writer.finish(noise.as_ref())?;
+    println!("{}: {n} frames (depth_scale {})", a.output.display(), camera.depth_scale);
+    Ok(())
 }

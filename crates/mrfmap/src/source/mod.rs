@@ -20,4 +20,4 @@ pub use dataset::{Dataset, DatasetOptions, FrameInfo};
 pub use depth_png::{decode_depth_png, read_depth_png, write_depth_png};
 pub use grid_world::GridWorld;
 pub use scene::{Scene, Shape};
-pub use simulate::{SimulationSummary, simulate};
+pub use simulate::{DatasetWriter, SimulationSummary, simulate};

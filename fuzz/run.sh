@@ -9,7 +9,7 @@ set -euo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
 secs=${1:-600}
 shift || true
-targets=${*:-depth_png camera_toml noise_toml scene_toml map_file ply octomap carmen}
+targets=${*:-depth_png camera_toml noise_toml scene_toml map_file ply octomap carmen bag_messages}
 "$here/seed.sh"
 flags="-Cpasses=sancov-module -Cllvm-args=-sanitizer-coverage-level=4 \
  -Cllvm-args=-sanitizer-coverage-inline-8bit-counters -Cllvm-args=-sanitizer-coverage-pc-table \

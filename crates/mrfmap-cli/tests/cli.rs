@@ -860,6 +860,26 @@ fn ros2_bags_build_the_same_map_as_the_dataset() {
     let o = build(&sqlite, &m, &[depth[0], depth[1], "--fixed-frame", "map"]);
     assert!(o.status.success(), "{}", stderr(&o));
     same_maps(&tum, &m);
+    // compressedDepth images (16UC1 millimetres), PNG or RVL: the same map either way, and
+    // within the millimetre rounding of the dataset's.
+    let (png, rvl) = (dir.join("png"), dir.join("rvl"));
+    make_bag(&data, &png, &["--direct", "--compressed", "png"]);
+    make_bag(&data, &rvl, &["--direct", "--compressed", "rvl"]);
+    let compressed = ["--depth-topic", "/camera/depth/image_rect_raw/compressedDepth"];
+    let info = ["--camera-info-topic", "/camera/depth/camera_info"];
+    let (mp, mr) = (dir.join("png.mrfmap"), dir.join("rvl.mrfmap"));
+    for (bag, out) in [(&png, &mp), (&rvl, &mr)] {
+        let o = build(bag, out, &[compressed[0], compressed[1], info[0], info[1], "--fixed-frame", "map"]);
+        assert!(o.status.success(), "{}", stderr(&o));
+    }
+    same_maps(&mp, &mr);
+    let (a, b) = (mrfmap::map::Map::load(&mp).unwrap(), mrfmap::map::Map::load(&tum).unwrap());
+    let agree = a
+        .voxels
+        .iter()
+        .filter(|(k, v)| b.voxels.get(*k).is_some_and(|w| (w.occupancy > 0.5) == (v.occupancy > 0.5)))
+        .count();
+    assert!(agree as f64 > 0.99 * b.voxels.len() as f64, "{agree} of {}", b.voxels.len());
     // The bag as a dataset again: the same map.
     let exported = dir.join("exported");
     let o = run(&["export-dataset", s(&direct), "-o", s(&exported), depth[0], depth[1], "--fixed-frame", "map"]);
@@ -889,7 +909,6 @@ fn ros2_bags_build_the_same_map_as_the_dataset() {
     let o = build(&direct, &m, &[depth[0], depth[1], "--fixed-frame", "world"]);
     let err = stderr(&o);
     assert!(!o.status.success() && err.contains("does not connect") && err.contains("no image"), "{err}");
-    let info = ["--camera-info-topic", "/camera/depth/camera_info"];
     let o = build(&direct, &m, &["--depth-topic", "/camera/pose", info[0], info[1], "--fixed-frame", "map"]);
     assert!(!o.status.success() && stderr(&o).contains("not sensor_msgs/msg/Image"), "{}", stderr(&o));
     let o = build(&direct, &m, &["--fixed-frame", "map"]);

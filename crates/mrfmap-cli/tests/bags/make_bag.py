@@ -4,7 +4,10 @@ the PNGs), CameraInfo beside them, and the poses as TF: map -> base on /tf (at e
 stamp) and base -> camera_depth_optical on /tf_static, or, with --direct, map ->
 camera_depth_optical on /tf. Also a PoseStamped topic /camera/pose. Needs the `rosbags` package.
 
-usage: make_bag.py DATASET OUT [--direct] [--db3]
+With --compressed png or --compressed rvl the images go on .../compressedDepth as
+sensor_msgs/CompressedImage in compressedDepth format (16UC1 millimetres).
+
+usage: make_bag.py DATASET OUT [--direct] [--db3] [--compressed png|rvl]
 """
 
 import struct
@@ -52,6 +55,57 @@ def read_png16(path):
     return width, height, rows
 
 
+def png16(width, height, values):
+    """A 16-bit grayscale PNG of row-major values (filter 0 on every row)."""
+    def chunk(kind, body):
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body) & 0xFFFFFFFF)
+    raw = b"".join(b"\x00" + struct.pack(">%dH" % width, *values[y * width : (y + 1) * width]) for y in range(height))
+    ihdr = struct.pack(">IIBBBBB", width, height, 16, 0, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b"")
+
+
+def rvl(values):
+    """Wilson's RVL: zero runs and zigzag deltas of non-zero runs in 3-bit groups with a
+    continuation bit, nibbles packed most significant first into little-endian u32 words."""
+    words, state = [], [0, 0]
+
+    def put(n):
+        state[0] = ((state[0] << 4) | n) & 0xFFFFFFFF
+        state[1] += 1
+        if state[1] == 8:
+            words.append(state[0])
+            state[0], state[1] = 0, 0
+
+    def vle(v):
+        while True:
+            n = v & 7
+            v >>= 3
+            if v:
+                n |= 8
+            put(n)
+            if not n & 8:
+                break
+
+    i, prev, n = 0, 0, len(values)
+    while i < n:
+        j = i
+        while j < n and values[j] == 0:
+            j += 1
+        vle(j - i)
+        k = j
+        while k < n and values[k] != 0:
+            k += 1
+        vle(k - j)
+        for v in values[j:k]:
+            d = v - prev
+            vle((d << 1) ^ (d >> 31) if d >= 0 else ((-d) << 1) - 1)
+            prev = v
+        i = k
+    if state[1]:
+        words.append((state[0] << (4 * (8 - state[1]))) & 0xFFFFFFFF)
+    return struct.pack("<%dI" % len(words), *words)
+
+
 def f32(x):
     return struct.unpack("<f", struct.pack("<f", x))[0]
 
@@ -63,6 +117,7 @@ def table(path):
 def main():
     root, out = Path(sys.argv[1]), Path(sys.argv[2])
     direct, db3 = "--direct" in sys.argv, "--db3" in sys.argv
+    compressed = sys.argv[sys.argv.index("--compressed") + 1] if "--compressed" in sys.argv else None
     cam = dict(l.split("=", 1) for l in (root / "camera.toml").read_text().splitlines() if "=" in l)
     cam = {k.strip(): float(v) for k, v in cam.items()}
     inv = f32(1.0 / cam["depth_scale"])
@@ -75,7 +130,11 @@ def main():
     poses = {float(r[0]): [float(v) for v in r[1:8]] for r in table(root / "groundtruth.txt")}
     plugin = StoragePlugin.SQLITE3 if db3 else StoragePlugin.MCAP
     with Writer(out, version=8, storage_plugin=plugin) as w:
-        c_img = w.add_connection("/camera/depth/image_rect_raw", Image.__msgtype__, typestore=ts)
+        if compressed:
+            Compressed = ts.types["sensor_msgs/msg/CompressedImage"]
+            c_img = w.add_connection("/camera/depth/image_rect_raw/compressedDepth", Compressed.__msgtype__, typestore=ts)
+        else:
+            c_img = w.add_connection("/camera/depth/image_rect_raw", Image.__msgtype__, typestore=ts)
         c_info = w.add_connection("/camera/depth/camera_info", Info.__msgtype__, typestore=ts)
         c_tf = w.add_connection("/tf", TF.__msgtype__, typestore=ts)
         c_static = w.add_connection("/tf_static", TF.__msgtype__, typestore=ts)
@@ -98,7 +157,14 @@ def main():
             w.write(c_info, ns, ser(info))
             child = optical if direct else "base"
             w.write(c_tf, ns, ser(TF(transforms=[tfs(t, "map", child, p)])))
-            img = Image(header=hdr, height=height, width=width, encoding="32FC1", is_bigendian=0, step=width * 4, data=depth.view(np.uint8))
+            if compressed:
+                mm = [int(round(float(z) * 1000)) if z > 0 else 0 for z in depth]
+                body = png16(width, height, mm) if compressed == "png" else struct.pack("<II", width, height) + rvl(mm)
+                head = struct.pack("<iff", 0, 0.0, 0.0)
+                fmt = "16UC1; compressedDepth " + compressed
+                img = Compressed(header=hdr, format=fmt, data=np.frombuffer(head + body, dtype=np.uint8))
+            else:
+                img = Image(header=hdr, height=height, width=width, encoding="32FC1", is_bigendian=0, step=width * 4, data=depth.view(np.uint8))
             w.write(c_img, ns, ser(img))
             w.write(c_pose, ns, ser(PS(header=Header(stamp=stamp(t), frame_id="map"), pose=Pose(position=Point(x=p[0], y=p[1], z=p[2]), orientation=Q(x=p[3], y=p[4], z=p[5], w=p[6])))))
 

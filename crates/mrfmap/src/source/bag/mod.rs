@@ -306,11 +306,13 @@ pub fn bag_frames(bag: &Bag, options: &BagOptions, noise: Option<NoiseModel>) ->
     let mut images = 0;
     let mut last_stamp = f64::NEG_INFINITY;
     bag.for_each(&[options.depth_topic.as_str()], |topic, msgtype, _, data| {
-        if !msgtype.is_empty() && msgtype != "sensor_msgs/msg/Image" {
-            return Err(bad(format!("{topic} carries {msgtype}, not sensor_msgs/msg/Image")));
-        }
+        let decode = match msgtype {
+            "sensor_msgs/msg/Image" | "" => msgs::depth_image,
+            "sensor_msgs/msg/CompressedImage" => msgs::compressed_depth,
+            other => return Err(bad(format!("{topic} carries {other}, not sensor_msgs/msg/Image or CompressedImage"))),
+        };
         images += 1;
-        let (h, depth) = msgs::depth_image(data).map_err(|m| bad(format!("{topic}: image {images}: {m}")))?;
+        let (h, depth) = decode(data).map_err(|m| bad(format!("{topic}: image {images}: {m}")))?;
         if (depth.width(), depth.height()) != (camera.width, camera.height) {
             return Err(bad(format!(
                 "{topic}: image {images} is {}x{} but {info_topic} says {}x{}",

@@ -159,6 +159,112 @@ pub fn point_cloud(data: &[u8]) -> CdrResult<(Header, Vec<[f64; 3]>)> {
     Ok((h, points))
 }
 
+/// `sensor_msgs/CompressedImage` in `compressedDepth` format (`compressed_depth_image_transport`):
+/// a 12-byte header (format, and the two parameters of 32FC1's inverse-depth quantisation),
+/// then a 16-bit PNG or an RVL stream (`cols`, `rows` as u32, then the RVL words). 16UC1
+/// images hold millimetres; 32FC1 ones quantised inverse depth, `z = a / (v - b)`.
+pub fn compressed_depth(data: &[u8]) -> CdrResult<(Header, DepthImage)> {
+    let mut c = Cdr::new(data)?;
+    let h = header(&mut c)?;
+    let format = c.string("format")?;
+    let payload = c.byte_seq("data")?;
+    let lower = format.to_ascii_lowercase();
+    if !lower.contains("compresseddepth") {
+        return Err(format!("CompressedImage format {format:?} is not compressedDepth"));
+    }
+    let inverse = format.starts_with("32FC1");
+    if !inverse && !format.starts_with("16UC1") {
+        return Err(format!("compressedDepth of {format:?}: only 16UC1 and 32FC1 are read"));
+    }
+    if payload.len() < 12 {
+        return Err("compressedDepth payload shorter than its header".into());
+    }
+    let param = |i: usize| f32::from_le_bytes(payload[4 + 4 * i..8 + 4 * i].try_into().expect("4 bytes")) as f64;
+    let (a, b) = (param(0), param(1));
+    let body = &payload[12..];
+    let (width, height, raw): (u32, u32, Vec<u16>) = if lower.contains("rvl") {
+        rvl(body)?
+    } else {
+        let img = crate::source::decode_depth_png(std::io::Cursor::new(body), 1.0, None)?;
+        (img.width(), img.height(), img.data().iter().map(|v| *v as u16).collect())
+    };
+    let depth: Vec<f32> = raw
+        .iter()
+        .map(|&v| match (v, inverse) {
+            (0, _) => 0.0,
+            (v, false) => v as f32 * 1e-3,
+            (v, true) => {
+                let z = a / (v as f64 - b);
+                if z.is_finite() && z > 0.0 { z as f32 } else { 0.0 }
+            }
+        })
+        .collect();
+    let image = DepthImage::from_vec(width, height, depth).ok_or("image size does not match its data")?;
+    Ok((h, image))
+}
+
+/// Decodes `cols`, `rows` and an RVL stream (Wilson 2017: runs of zeros and of non-zero values
+/// coded as zigzag deltas, in 4-bit groups, most significant nibble of each u32 word first).
+fn rvl(body: &[u8]) -> CdrResult<(u32, u32, Vec<u16>)> {
+    if body.len() < 8 {
+        return Err("RVL payload shorter than its size".into());
+    }
+    let cols = u32::from_le_bytes(body[0..4].try_into().expect("4 bytes"));
+    let rows = u32::from_le_bytes(body[4..8].try_into().expect("4 bytes"));
+    let n = cols as usize * rows as usize;
+    if cols == 0 || rows == 0 || cols > crate::frames::MAX_SIDE || rows > crate::frames::MAX_SIDE {
+        return Err(format!("RVL image size {cols}x{rows} is not a depth image's"));
+    }
+    let words: Vec<u32> =
+        body[8..].chunks_exact(4).map(|w| u32::from_le_bytes(w.try_into().expect("4 bytes"))).collect();
+    let (mut word, mut left, mut next) = (0u32, 0, 0usize);
+    let mut nibble = || -> CdrResult<u32> {
+        if left == 0 {
+            word = *words.get(next).ok_or("RVL stream ends early")?;
+            next += 1;
+            left = 8;
+        }
+        let v = word >> 28;
+        word <<= 4;
+        left -= 1;
+        Ok(v)
+    };
+    let mut vle = || -> CdrResult<u64> {
+        let (mut value, mut shift) = (0u64, 0);
+        loop {
+            let n = nibble()?;
+            value |= ((n & 7) as u64) << shift;
+            shift += 3;
+            if n & 8 == 0 || shift > 60 {
+                return Ok(value);
+            }
+        }
+    };
+    let mut out = Vec::with_capacity(n);
+    let mut previous: i64 = 0;
+    while out.len() < n {
+        let zeros = vle()? as usize;
+        if zeros > n - out.len() {
+            return Err("RVL run longer than the image".into());
+        }
+        out.resize(out.len() + zeros, 0);
+        if out.len() == n {
+            break;
+        }
+        let values = vle()? as usize;
+        if values > n - out.len() {
+            return Err("RVL run longer than the image".into());
+        }
+        for _ in 0..values {
+            let positive = vle()? as i64;
+            let delta = (positive >> 1) ^ -(positive & 1);
+            previous += delta;
+            out.push(previous.clamp(0, u16::MAX as i64) as u16);
+        }
+    }
+    Ok((cols, rows, out))
+}
+
 /// `sensor_msgs/CameraInfo`: size and the intrinsic matrix `K` (row-major 3x3).
 pub fn camera_info(data: &[u8]) -> CdrResult<(Header, u32, u32, [f64; 9])> {
     let mut c = Cdr::new(data)?;

@@ -348,3 +348,47 @@ pub fn bag_frames(bag: &Bag, options: &BagOptions, noise: Option<NoiseModel>) ->
     }
     Ok((frames, skipped))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn compressed_mcap_chunks_and_bag_errors() {
+        let dir = std::env::temp_dir().join(format!("mrfmap-bag-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        for (name, compression) in [("zstd.mcap", mcap::Compression::Zstd), ("lz4.mcap", mcap::Compression::Lz4)] {
+            let path = dir.join(name);
+            let file = std::io::BufWriter::new(std::fs::File::create(&path).unwrap());
+            let mut w = mcap::WriteOptions::new().compression(Some(compression)).create(file).unwrap();
+            let schema = w.add_schema("tf2_msgs/msg/TFMessage", "ros2msg", b"").unwrap();
+            let channel = w.add_channel(schema, "/tf", "cdr", &Default::default()).unwrap();
+            let mut cdr = msgs::tests::Writer::new();
+            cdr.u32(1).header(2, 0, "map").string("base");
+            for v in [1.0, 2.0, 3.0, 0.0, 0.0, 0.0, 1.0] {
+                cdr.f64(v);
+            }
+            for i in 0..50u64 {
+                let header = mcap::records::MessageHeader {
+                    channel_id: channel,
+                    sequence: i as u32,
+                    log_time: i,
+                    publish_time: i,
+                };
+                w.write_to_known_channel(&header, &cdr.0).unwrap();
+            }
+            w.finish().unwrap();
+            let bag = Bag::open(&path).unwrap();
+            let topics = bag.topics().unwrap();
+            assert_eq!((topics[0].topic.as_str(), topics[0].count), ("/tf", 50), "{name}");
+            assert_eq!(bag.tf().unwrap().frames(), ["base", "map"]);
+        }
+        assert!(Bag::open(&dir.join("missing.mcap")).is_err());
+        std::fs::write(dir.join("x.bag"), b"#ROSBAG V2.0").unwrap();
+        assert!(Bag::open(&dir.join("x.bag")).unwrap_err().to_string().contains("expected a .mcap or .db3"));
+        std::fs::write(dir.join("junk.db3"), b"not sqlite at all").unwrap();
+        let bag = Bag::open(&dir.join("junk.db3")).unwrap();
+        assert!(bag.topics().unwrap_err().to_string().contains("not a readable ROS 2 sqlite3 bag"));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}

@@ -860,6 +860,12 @@ fn ros2_bags_build_the_same_map_as_the_dataset() {
     let o = build(&sqlite, &m, &[depth[0], depth[1], "--fixed-frame", "map"]);
     assert!(o.status.success(), "{}", stderr(&o));
     same_maps(&tum, &m);
+    // A ROS 1 bag of the same data (through the rosbag crate and ROS 1 serialisation).
+    let ros1 = dir.join("ros1.bag");
+    make_bag(&data, &ros1, &["--ros1"]);
+    let o = build(&ros1, &m, &[depth[0], depth[1], "--fixed-frame", "map"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    same_maps(&tum, &m);
     // compressedDepth images (16UC1 millimetres), PNG or RVL: the same map either way, and
     // within the millimetre rounding of the dataset's.
     let (png, rvl) = (dir.join("png"), dir.join("rvl"));

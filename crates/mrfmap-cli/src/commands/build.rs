@@ -190,9 +190,10 @@ pub struct BagArgs {
 }
 
 impl BagArgs {
-    /// Is `path` a bag (a `.mcap` file or a folder with `metadata.yaml`)?
+    /// Is `path` a bag (a `.mcap`, `.db3` or ROS 1 `.bag` file, or a folder with `metadata.yaml`)?
     pub fn is_bag(path: &std::path::Path) -> bool {
-        path.extension().is_some_and(|e| e == "mcap" || e == "db3") || path.join("metadata.yaml").is_file()
+        path.extension().is_some_and(|e| e == "mcap" || e == "db3" || e == "bag")
+            || path.join("metadata.yaml").is_file()
     }
 
     fn options(&self, depth_topic: String) -> BagOptions {

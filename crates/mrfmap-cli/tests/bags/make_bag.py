@@ -7,7 +7,9 @@ camera_depth_optical on /tf. Also a PoseStamped topic /camera/pose. Needs the `r
 With --compressed png or --compressed rvl the images go on .../compressedDepth as
 sensor_msgs/CompressedImage in compressedDepth format (16UC1 millimetres).
 
-usage: make_bag.py DATASET OUT [--direct] [--db3] [--compressed png|rvl]
+With --ros1 it writes a ROS 1 bag (OUT is the .bag file).
+
+usage: make_bag.py DATASET OUT [--direct] [--db3] [--ros1] [--compressed png|rvl]
 """
 
 import struct
@@ -15,6 +17,7 @@ import sys
 import zlib
 from pathlib import Path
 
+from rosbags.rosbag1 import Writer as Writer1
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
@@ -118,18 +121,25 @@ def main():
     root, out = Path(sys.argv[1]), Path(sys.argv[2])
     direct, db3 = "--direct" in sys.argv, "--db3" in sys.argv
     compressed = sys.argv[sys.argv.index("--compressed") + 1] if "--compressed" in sys.argv else None
+    ros1 = "--ros1" in sys.argv
     cam = dict(l.split("=", 1) for l in (root / "camera.toml").read_text().splitlines() if "=" in l)
     cam = {k.strip(): float(v) for k, v in cam.items()}
     inv = f32(1.0 / cam["depth_scale"])
-    ts = get_typestore(Stores.ROS2_HUMBLE)
-    Image, Info, Header, Time = (ts.types[n] for n in ["sensor_msgs/msg/Image", "sensor_msgs/msg/CameraInfo", "std_msgs/msg/Header", "builtin_interfaces/msg/Time"])
+    ts = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+    if "tf2_msgs/msg/TFMessage" not in ts.types:
+        from rosbags.typesys import get_types_from_msg
+
+        ts.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms", "tf2_msgs/msg/TFMessage"))
+    Image, Info, Header2 = (ts.types[n] for n in ["sensor_msgs/msg/Image", "sensor_msgs/msg/CameraInfo", "std_msgs/msg/Header"])
+    Time = ts.types["builtin_interfaces/msg/Time"]
+    Header = (lambda **kw: Header2(seq=0, **kw)) if ros1 else Header2
     TF, TS, Tr, V3, Q = (ts.types[n] for n in ["tf2_msgs/msg/TFMessage", "geometry_msgs/msg/TransformStamped", "geometry_msgs/msg/Transform", "geometry_msgs/msg/Vector3", "geometry_msgs/msg/Quaternion"])
     PS, Pose, Point, ROI = (ts.types[n] for n in ["geometry_msgs/msg/PoseStamped", "geometry_msgs/msg/Pose", "geometry_msgs/msg/Point", "sensor_msgs/msg/RegionOfInterest"])
     import numpy as np
 
     poses = {float(r[0]): [float(v) for v in r[1:8]] for r in table(root / "groundtruth.txt")}
     plugin = StoragePlugin.SQLITE3 if db3 else StoragePlugin.MCAP
-    with Writer(out, version=8, storage_plugin=plugin) as w:
+    with (Writer1(out) if ros1 else Writer(out, version=8, storage_plugin=plugin)) as w:
         if compressed:
             Compressed = ts.types["sensor_msgs/msg/CompressedImage"]
             c_img = w.add_connection("/camera/depth/image_rect_raw/compressedDepth", Compressed.__msgtype__, typestore=ts)
@@ -141,7 +151,7 @@ def main():
         c_pose = w.add_connection("/camera/pose", PS.__msgtype__, typestore=ts)
         stamp = lambda t: Time(sec=int(t), nanosec=int(round((t - int(t)) * 1e9)))
         tfs = lambda t, parent, child, p: TS(header=Header(stamp=stamp(t), frame_id=parent), child_frame_id=child, transform=Tr(translation=V3(x=p[0], y=p[1], z=p[2]), rotation=Q(x=p[3], y=p[4], z=p[5], w=p[6])))
-        ser = lambda m: ts.serialize_cdr(m, m.__msgtype__)
+        ser = lambda m: (ts.serialize_ros1 if ros1 else ts.serialize_cdr)(m, m.__msgtype__)
         optical = "camera_depth_optical"
         base_cam = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]  # identity: exact composition
         if not direct:
@@ -153,7 +163,8 @@ def main():
             depth = np.array([f32(v * inv) for row in rows for v in row], dtype="<f4")
             hdr = Header(stamp=stamp(t), frame_id=optical)
             k = np.array([cam["fx"], 0, cam["cx"], 0, cam["fy"], cam["cy"], 0, 0, 1], dtype=np.float64)
-            info = Info(header=hdr, height=height, width=width, distortion_model="plumb_bob", d=np.zeros(5), k=k, r=np.eye(3).flatten(), p=np.zeros(12), binning_x=0, binning_y=0, roi=ROI(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
+            mats = dict(D=np.zeros(5), K=k, R=np.eye(3).flatten(), P=np.zeros(12)) if ros1 else dict(d=np.zeros(5), k=k, r=np.eye(3).flatten(), p=np.zeros(12))
+            info = Info(header=hdr, height=height, width=width, distortion_model="plumb_bob", binning_x=0, binning_y=0, roi=ROI(x_offset=0, y_offset=0, height=0, width=0, do_rectify=False), **mats)
             w.write(c_info, ns, ser(info))
             child = optical if direct else "base"
             w.write(c_tf, ns, ser(TF(transforms=[tfs(t, "map", child, p)])))

@@ -1,19 +1,40 @@
-//! Reading ROS 2 messages in plain CDR (XCDR1), the serialisation of ROS 2 bags: a 4-byte
+//! Reading ROS messages: ROS 2's plain CDR (XCDR1) and ROS 1's serialisation. CDR has a 4-byte
 //! encapsulation header (its second byte says the byte order), then fields in order, each
 //! aligned to its own size measured from the end of the header; strings are a `u32` length
-//! counting a final NUL, sequences a `u32` count. Only what the message readers need.
+//! counting a final NUL, sequences a `u32` count. ROS 1 is the same little-endian fields with
+//! no header, no alignment and no NUL (and a `seq` in every `Header`). Only what the message
+//! readers need.
+
+/// How a message is serialised.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Encoding {
+    /// ROS 2: CDR.
+    Cdr,
+    /// ROS 1.
+    Ros1,
+}
 
 /// A cursor over one CDR message; every read checks bounds and says what was truncated.
 pub struct Cdr<'a> {
     data: &'a [u8],
     pos: usize,
     little: bool,
+    /// ROS 1: no alignment, and headers carry a `seq`.
+    pub ros1: bool,
 }
 
 /// Result of a CDR read: the error says which field could not be read.
 pub type CdrResult<T> = std::result::Result<T, String>;
 
 impl<'a> Cdr<'a> {
+    /// A reader of a message in `encoding`.
+    pub fn with(data: &'a [u8], encoding: Encoding) -> CdrResult<Self> {
+        match encoding {
+            Encoding::Cdr => Self::new(data),
+            Encoding::Ros1 => Ok(Cdr { data, pos: 0, little: true, ros1: true }),
+        }
+    }
+
     /// A reader positioned after the encapsulation header.
     pub fn new(data: &'a [u8]) -> CdrResult<Self> {
         if data.len() < 4 {
@@ -24,11 +45,11 @@ impl<'a> Cdr<'a> {
             1 | 3 => true,
             other => return Err(format!("unknown CDR encapsulation {other}")),
         };
-        Ok(Cdr { data: &data[4..], pos: 0, little })
+        Ok(Cdr { data: &data[4..], pos: 0, little, ros1: false })
     }
 
     fn take(&mut self, n: usize, align: usize, what: &str) -> CdrResult<&'a [u8]> {
-        let start = self.pos.next_multiple_of(align);
+        let start = if self.ros1 { self.pos } else { self.pos.next_multiple_of(align) };
         let end = start.checked_add(n).filter(|e| *e <= self.data.len());
         let end = end.ok_or_else(|| format!("message ends inside {what}"))?;
         self.pos = end;

@@ -1,7 +1,8 @@
-//! Robot recordings: ROS 2 bags in MCAP or sqlite3, read without ROS (cargo feature `bags`).
+//! Robot recordings: ROS 2 bags in MCAP or sqlite3 and ROS 1 bags, read without ROS (cargo
+//! feature `bags`).
 //!
-//! A bag is one `.mcap` or `.db3` file or a bag folder (`metadata.yaml` beside one or more
-//! such files, read in name order). Messages are decoded by hand from CDR ([`msgs`]): depth images
+//! A bag is one `.mcap`, `.db3` or ROS 1 `.bag` file, or a bag folder (`metadata.yaml` beside
+//! one or more such files, read in name order). Messages are decoded by hand from CDR ([`msgs`]): depth images
 //! (`sensor_msgs/Image`, 16UC1 millimetres or 32FC1 metres), `sensor_msgs/CameraInfo`,
 //! `tf2_msgs/TFMessage` on `/tf` and `/tf_static`, `geometry_msgs/PoseStamped`,
 //! `nav_msgs/Odometry`, and `sensor_msgs/LaserScan` and `sensor_msgs/PointCloud2` as range scans
@@ -15,6 +16,8 @@
 pub mod cdr;
 pub mod msgs;
 pub mod tf;
+
+pub use cdr::Encoding;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -46,7 +49,7 @@ pub struct Bag {
 impl Bag {
     /// Opens a `.mcap` or `.db3` file, or a bag folder.
     pub fn open(path: &Path) -> Result<Self> {
-        let is_bag_file = |p: &Path| p.extension().is_some_and(|e| e == "mcap" || e == "db3");
+        let is_bag_file = |p: &Path| p.extension().is_some_and(|e| e == "mcap" || e == "db3" || e == "bag");
         let files = if path.is_dir() {
             let mut f: Vec<PathBuf> = std::fs::read_dir(path)
                 .map_err(|e| Error::io(path, e))?
@@ -55,7 +58,7 @@ impl Bag {
                 .collect();
             f.sort();
             if f.is_empty() {
-                return Err(Error::file(path, "not a bag: no .mcap or .db3 files in the folder"));
+                return Err(Error::file(path, "not a bag: no .mcap, .db3 or .bag files in the folder"));
             }
             f
         } else if is_bag_file(path) {
@@ -64,17 +67,26 @@ impl Bag {
             }
             vec![path.to_path_buf()]
         } else {
-            return Err(Error::file(path, "not a bag: expected a .mcap or .db3 file, or a bag folder"));
+            return Err(Error::file(path, "not a bag: expected a .mcap, .db3 or .bag file, or a bag folder"));
         };
         Ok(Bag { path: path.to_path_buf(), files })
     }
 
-    /// Calls `visit(topic, type, log_time_seconds, cdr_bytes)` for every message on `topics`
-    /// (all topics when empty), file by file in name order, each in log-time order.
-    pub fn for_each(&self, topics: &[&str], mut visit: impl FnMut(&str, &str, f64, &[u8]) -> Result<()>) -> Result<()> {
+    /// Calls `visit(topic, type, log_time_seconds, bytes, encoding)` for every message on
+    /// `topics` (all topics when empty), file by file in name order. Types are named the ROS 2
+    /// way (`sensor_msgs/msg/Image`) for ROS 1 bags too.
+    pub fn for_each(
+        &self,
+        topics: &[&str],
+        mut visit: impl FnMut(&str, &str, f64, &[u8], Encoding) -> Result<()>,
+    ) -> Result<()> {
         for file in &self.files {
             if file.extension().is_some_and(|e| e == "db3") {
-                sqlite_for_each(file, topics, &mut visit)?;
+                sqlite_for_each(file, topics, &mut |t, ty, time, data| visit(t, ty, time, data, Encoding::Cdr))?;
+                continue;
+            }
+            if file.extension().is_some_and(|e| e == "bag") {
+                ros1_for_each(file, topics, &mut visit)?;
                 continue;
             }
             // The file is read whole (MCAP's reader wants a slice); say so before trying.
@@ -95,7 +107,7 @@ impl Bag {
                         format!("{topic}: message encoding {:?} is not CDR (a ROS 2 bag?)", m.channel.message_encoding),
                     ));
                 }
-                visit(topic, msgtype, m.log_time as f64 * 1e-9, &m.data)?;
+                visit(topic, msgtype, m.log_time as f64 * 1e-9, &m.data, Encoding::Cdr)?;
             }
         }
         Ok(())
@@ -104,7 +116,7 @@ impl Bag {
     /// Topics, types, message counts and time spans.
     pub fn topics(&self) -> Result<Vec<TopicInfo>> {
         let mut t: BTreeMap<String, TopicInfo> = BTreeMap::new();
-        self.for_each(&[], |topic, msgtype, time, _| {
+        self.for_each(&[], |topic, msgtype, time, _, _| {
             let e = t.entry(topic.to_string()).or_insert_with(|| TopicInfo {
                 topic: topic.to_string(),
                 msgtype: msgtype.to_string(),
@@ -121,8 +133,9 @@ impl Bag {
     /// The transform tree of `/tf` and `/tf_static`.
     pub fn tf(&self) -> Result<tf::TfBuffer> {
         let mut buffer = tf::TfBuffer::default();
-        self.for_each(&["/tf", "/tf_static"], |topic, _, _, data| {
-            let entries = msgs::tf_message(data).map_err(|m| Error::file(&self.path, format!("{topic}: {m}")))?;
+        self.for_each(&["/tf", "/tf_static"], |topic, _, _, data, encoding| {
+            let entries =
+                msgs::tf_message(data, encoding).map_err(|m| Error::file(&self.path, format!("{topic}: {m}")))?;
             for (h, child, t) in entries {
                 buffer.insert(&h.frame_id, &child, h.stamp, &t, topic == "/tf_static");
             }
@@ -131,6 +144,39 @@ impl Bag {
         buffer.finish();
         Ok(buffer)
     }
+}
+
+/// The messages of a ROS 1 bag file, in file order; types renamed the ROS 2 way.
+fn ros1_for_each(
+    file: &Path,
+    topics: &[&str],
+    visit: &mut impl FnMut(&str, &str, f64, &[u8], Encoding) -> Result<()>,
+) -> Result<()> {
+    use rosbag::{ChunkRecord, MessageRecord, RosBag};
+    let bad = |e: &dyn std::fmt::Display| Error::file(file, format!("not a readable ROS 1 bag: {e}"));
+    let bag = RosBag::new(file).map_err(|e| bad(&e))?;
+    let mut connections: std::collections::HashMap<u32, (String, String)> = std::collections::HashMap::new();
+    for record in bag.chunk_records() {
+        let ChunkRecord::Chunk(chunk) = record.map_err(|e| bad(&e))? else { continue };
+        for msg in chunk.messages() {
+            match msg.map_err(|e| bad(&e))? {
+                MessageRecord::Connection(c) => {
+                    // `sensor_msgs/Image` -> `sensor_msgs/msg/Image`.
+                    let ty = c.tp.split_once('/').map_or(c.tp.to_string(), |(p, t)| format!("{p}/msg/{t}"));
+                    connections.insert(c.id, (c.topic.to_string(), ty));
+                }
+                MessageRecord::MessageData(m) => {
+                    let (topic, ty) = connections
+                        .get(&m.conn_id)
+                        .ok_or_else(|| bad(&format!("message on connection {} before its definition", m.conn_id)))?;
+                    if topics.is_empty() || topics.contains(&topic.as_str()) {
+                        visit(topic, ty, m.time as f64 * 1e-9, m.data, Encoding::Ros1)?;
+                    }
+                }
+            }
+        }
+    }
+    Ok(())
 }
 
 /// The messages of a ROS 2 sqlite3 bag file (`topics` and `messages` tables), in time order.
@@ -203,9 +249,9 @@ fn pose_source(bag: &Bag, options: &BagOptions) -> Result<PoseSource> {
     Ok(match (&options.pose_topic, &options.fixed_frame) {
         (Some(topic), _) => {
             let mut series = tf::Series::default();
-            bag.for_each(&[topic.as_str()], |t, msgtype, _, data| {
+            bag.for_each(&[topic.as_str()], |t, msgtype, _, data, encoding| {
                 let odometry = msgtype.contains("Odometry");
-                let (h, p) = msgs::pose(data, odometry).map_err(|m| bad(format!("{t}: {m}")))?;
+                let (h, p) = msgs::pose(data, encoding, odometry).map_err(|m| bad(format!("{t}: {m}")))?;
                 series.push(h.stamp, &p);
                 Ok(())
             })?;
@@ -243,15 +289,15 @@ pub fn bag_scans(
     let poses = pose_source(bag, options)?;
     let noise = noise.map(std::sync::Arc::new);
     let (mut scans, mut skipped, mut n) = (Vec::new(), Vec::new(), 0);
-    bag.for_each(&[topic], |t, msgtype, _, data| {
+    bag.for_each(&[topic], |t, msgtype, _, data, encoding| {
         n += 1;
         let decoded = match msgtype {
-            "sensor_msgs/msg/LaserScan" => msgs::laser_scan(data).map(|(h, beams, max_range)| {
+            "sensor_msgs/msg/LaserScan" => msgs::laser_scan(data, encoding).map(|(h, beams, max_range)| {
                 let beams = beams.into_iter().map(|(a, range)| Beam { dir: [a.cos(), a.sin(), 0.0], range }).collect();
                 (h, beams, max_range)
             }),
             // A cloud's points are beams from the sensor's origin, every one a return.
-            "sensor_msgs/msg/PointCloud2" => msgs::point_cloud(data).map(|(h, points)| {
+            "sensor_msgs/msg/PointCloud2" => msgs::point_cloud(data, encoding).map(|(h, points)| {
                 let beams: Vec<Beam> = points
                     .into_iter()
                     .filter_map(|p| {
@@ -291,9 +337,9 @@ pub fn bag_frames(bag: &Bag, options: &BagOptions, noise: Option<NoiseModel>) ->
     let bad = |m: String| Error::file(&bag.path, m);
     let info_topic = options.camera_info_topic.clone().unwrap_or_else(|| sibling_camera_info(&options.depth_topic));
     let mut camera = None;
-    bag.for_each(&[info_topic.as_str()], |topic, _, _, data| {
+    bag.for_each(&[info_topic.as_str()], |topic, _, _, data, encoding| {
         if camera.is_none() {
-            let (_, w, h, k) = msgs::camera_info(data).map_err(|m| bad(format!("{topic}: {m}")))?;
+            let (_, w, h, k) = msgs::camera_info(data, encoding).map_err(|m| bad(format!("{topic}: {m}")))?;
             camera = Some(Camera::new(k[0], k[4], k[2], k[5], w, h, 1000.0).map_err(|e| bad(format!("{topic}: {e}")))?);
         }
         Ok(())
@@ -305,14 +351,14 @@ pub fn bag_frames(bag: &Bag, options: &BagOptions, noise: Option<NoiseModel>) ->
     let (mut frames, mut skipped) = (Vec::new(), Vec::new());
     let mut images = 0;
     let mut last_stamp = f64::NEG_INFINITY;
-    bag.for_each(&[options.depth_topic.as_str()], |topic, msgtype, _, data| {
+    bag.for_each(&[options.depth_topic.as_str()], |topic, msgtype, _, data, encoding| {
         let decode = match msgtype {
             "sensor_msgs/msg/Image" | "" => msgs::depth_image,
             "sensor_msgs/msg/CompressedImage" => msgs::compressed_depth,
             other => return Err(bad(format!("{topic} carries {other}, not sensor_msgs/msg/Image or CompressedImage"))),
         };
         images += 1;
-        let (h, depth) = decode(data).map_err(|m| bad(format!("{topic}: image {images}: {m}")))?;
+        let (h, depth) = decode(data, encoding).map_err(|m| bad(format!("{topic}: image {images}: {m}")))?;
         if (depth.width(), depth.height()) != (camera.width, camera.height) {
             return Err(bad(format!(
                 "{topic}: image {images} is {}x{} but {info_topic} says {}x{}",
@@ -384,8 +430,11 @@ mod tests {
             assert_eq!(bag.tf().unwrap().frames(), ["base", "map"]);
         }
         assert!(Bag::open(&dir.join("missing.mcap")).is_err());
-        std::fs::write(dir.join("x.bag"), b"#ROSBAG V2.0").unwrap();
-        assert!(Bag::open(&dir.join("x.bag")).unwrap_err().to_string().contains("expected a .mcap or .db3"));
+        std::fs::write(dir.join("x.txt"), b"hello").unwrap();
+        assert!(Bag::open(&dir.join("x.txt")).unwrap_err().to_string().contains("expected a .mcap, .db3 or .bag"));
+        std::fs::write(dir.join("x.bag"), b"#ROSBAG V2.0\ntruncated").unwrap();
+        let e = Bag::open(&dir.join("x.bag")).unwrap().topics().unwrap_err().to_string();
+        assert!(e.contains("not a readable ROS 1 bag"), "{e}");
         std::fs::write(dir.join("junk.db3"), b"not sqlite at all").unwrap();
         let bag = Bag::open(&dir.join("junk.db3")).unwrap();
         assert!(bag.topics().unwrap_err().to_string().contains("not a readable ROS 2 sqlite3 bag"));

@@ -1,7 +1,8 @@
-//! The ROS 2 messages mrfmap reads from bags, decoded by hand from CDR: a depth image, its
+//! The ROS messages mrfmap reads from bags, decoded by hand from CDR (ROS 2) or ROS 1's
+//! serialisation: a depth image, its
 //! camera's intrinsics, transforms and poses. Fields we do not use are read past, not kept.
 
-use super::cdr::{Cdr, CdrResult};
+use super::cdr::{Cdr, CdrResult, Encoding};
 use crate::frames::DepthImage;
 
 /// `std_msgs/Header`: stamp (seconds) and frame id.
@@ -14,6 +15,9 @@ pub struct Header {
 }
 
 fn header(c: &mut Cdr) -> CdrResult<Header> {
+    if c.ros1 {
+        c.u32("header.seq")?;
+    }
     let sec = c.i32("header.stamp.sec")?;
     let nanosec = c.u32("header.stamp.nanosec")?;
     Ok(Header { stamp: sec as f64 + nanosec as f64 * 1e-9, frame_id: c.string("header.frame_id")? })
@@ -33,8 +37,8 @@ fn transform(c: &mut Cdr, what: &str) -> CdrResult<Transform> {
 }
 
 /// `sensor_msgs/Image` holding depth: `16UC1` (millimetres) or `32FC1` (metres).
-pub fn depth_image(data: &[u8]) -> CdrResult<(Header, DepthImage)> {
-    let mut c = Cdr::new(data)?;
+pub fn depth_image(data: &[u8], encoding: Encoding) -> CdrResult<(Header, DepthImage)> {
+    let mut c = Cdr::with(data, encoding)?;
     let h = header(&mut c)?;
     let height = c.u32("height")?;
     let width = c.u32("width")?;
@@ -79,8 +83,8 @@ pub fn depth_image(data: &[u8]) -> CdrResult<(Header, DepthImage)> {
 /// `sensor_msgs/LaserScan` as beams in the scan's frame: `(angle, range or None for no
 /// return)`; readings below `range_min` (or NaN) measured nothing and are dropped, readings at
 /// or beyond `range_max` (or infinite) are misses. Also `range_max`.
-pub fn laser_scan(data: &[u8]) -> CdrResult<(Header, Vec<(f64, Option<f64>)>, f64)> {
-    let mut c = Cdr::new(data)?;
+pub fn laser_scan(data: &[u8], encoding: Encoding) -> CdrResult<(Header, Vec<(f64, Option<f64>)>, f64)> {
+    let mut c = Cdr::with(data, encoding)?;
     let h = header(&mut c)?;
     let angle_min = c.f32("angle_min")? as f64;
     c.f32("angle_max")?;
@@ -109,8 +113,8 @@ pub fn laser_scan(data: &[u8]) -> CdrResult<(Header, Vec<(f64, Option<f64>)>, f6
 
 /// `sensor_msgs/PointCloud2`: the points' `x y z` (float32 fields, at any offsets, either
 /// byte order), NaN and infinite points dropped.
-pub fn point_cloud(data: &[u8]) -> CdrResult<(Header, Vec<[f64; 3]>)> {
-    let mut c = Cdr::new(data)?;
+pub fn point_cloud(data: &[u8], encoding: Encoding) -> CdrResult<(Header, Vec<[f64; 3]>)> {
+    let mut c = Cdr::with(data, encoding)?;
     let h = header(&mut c)?;
     let (height, width) = (c.u32("height")? as usize, c.u32("width")? as usize);
     let nf = c.count(13, "fields")?;
@@ -163,8 +167,8 @@ pub fn point_cloud(data: &[u8]) -> CdrResult<(Header, Vec<[f64; 3]>)> {
 /// a 12-byte header (format, and the two parameters of 32FC1's inverse-depth quantisation),
 /// then a 16-bit PNG or an RVL stream (`cols`, `rows` as u32, then the RVL words). 16UC1
 /// images hold millimetres; 32FC1 ones quantised inverse depth, `z = a / (v - b)`.
-pub fn compressed_depth(data: &[u8]) -> CdrResult<(Header, DepthImage)> {
-    let mut c = Cdr::new(data)?;
+pub fn compressed_depth(data: &[u8], encoding: Encoding) -> CdrResult<(Header, DepthImage)> {
+    let mut c = Cdr::with(data, encoding)?;
     let h = header(&mut c)?;
     let format = c.string("format")?;
     let payload = c.byte_seq("data")?;
@@ -266,8 +270,8 @@ fn rvl(body: &[u8]) -> CdrResult<(u32, u32, Vec<u16>)> {
 }
 
 /// `sensor_msgs/CameraInfo`: size and the intrinsic matrix `K` (row-major 3x3).
-pub fn camera_info(data: &[u8]) -> CdrResult<(Header, u32, u32, [f64; 9])> {
-    let mut c = Cdr::new(data)?;
+pub fn camera_info(data: &[u8], encoding: Encoding) -> CdrResult<(Header, u32, u32, [f64; 9])> {
+    let mut c = Cdr::with(data, encoding)?;
     let h = header(&mut c)?;
     let height = c.u32("height")?;
     let width = c.u32("width")?;
@@ -281,8 +285,8 @@ pub fn camera_info(data: &[u8]) -> CdrResult<(Header, u32, u32, [f64; 9])> {
 }
 
 /// `tf2_msgs/TFMessage`: `(header, child_frame_id, transform)` per entry.
-pub fn tf_message(data: &[u8]) -> CdrResult<Vec<(Header, String, Transform)>> {
-    let mut c = Cdr::new(data)?;
+pub fn tf_message(data: &[u8], encoding: Encoding) -> CdrResult<Vec<(Header, String, Transform)>> {
+    let mut c = Cdr::with(data, encoding)?;
     // A TransformStamped takes at least 4 + 4 + 4 + 4 + 56 bytes.
     let n = c.count(72, "transforms")?;
     (0..n)
@@ -296,8 +300,8 @@ pub fn tf_message(data: &[u8]) -> CdrResult<Vec<(Header, String, Transform)>> {
 
 /// `geometry_msgs/PoseStamped` or `nav_msgs/Odometry`: the header and the pose (for odometry,
 /// of `child_frame_id` in the header's frame).
-pub fn pose(data: &[u8], odometry: bool) -> CdrResult<(Header, Transform)> {
-    let mut c = Cdr::new(data)?;
+pub fn pose(data: &[u8], encoding: Encoding, odometry: bool) -> CdrResult<(Header, Transform)> {
+    let mut c = Cdr::with(data, encoding)?;
     let h = header(&mut c)?;
     if odometry {
         c.string("child_frame_id")?;
@@ -357,20 +361,20 @@ pub(crate) mod tests {
         let mut w = Writer::new();
         w.header(10, 500_000_000, "cam").u32(1).u32(2).string("16UC1").u8(0).u32(4);
         w.bytes(&[0xE8, 0x03, 0, 0]); // 1000 mm, 0 (no return)
-        let (h, img) = depth_image(&w.0).unwrap();
+        let (h, img) = depth_image(&w.0, Encoding::Cdr).unwrap();
         assert_eq!((h.stamp, h.frame_id.as_str()), (10.5, "cam"));
         assert_eq!((img.get(0, 0), img.get(1, 0)), (Some(1.0), None));
         let mut w = Writer::new();
         w.header(0, 0, "cam").u32(1).u32(1).string("32FC1").u8(1).u32(4);
         w.bytes(&2.5f32.to_be_bytes());
-        assert_eq!(depth_image(&w.0).unwrap().1.get(0, 0), Some(2.5));
+        assert_eq!(depth_image(&w.0, Encoding::Cdr).unwrap().1.get(0, 0), Some(2.5));
         let mut w = Writer::new();
         w.header(0, 0, "cam").u32(1).u32(1).string("rgb8").u8(0).u32(3).bytes(&[1, 2, 3]);
-        assert!(depth_image(&w.0).unwrap_err().contains("rgb8"));
+        assert!(depth_image(&w.0, Encoding::Cdr).unwrap_err().contains("rgb8"));
         let mut w = Writer::new();
         w.header(0, 0, "cam").u32(2).u32(2).string("16UC1").u8(0).u32(4).bytes(&[0; 6]);
-        assert!(depth_image(&w.0).unwrap_err().contains("needs more than"));
-        assert!(depth_image(&w.0[..20]).unwrap_err().contains("message ends inside"));
+        assert!(depth_image(&w.0, Encoding::Cdr).unwrap_err().contains("needs more than"));
+        assert!(depth_image(&w.0[..20], Encoding::Cdr).unwrap_err().contains("message ends inside"));
     }
 
     #[test]
@@ -385,7 +389,7 @@ pub(crate) mod tests {
             w.u32(r.to_bits());
         }
         w.u32(0);
-        let (h, beams, max) = laser_scan(&w.0).unwrap();
+        let (h, beams, max) = laser_scan(&w.0, Encoding::Cdr).unwrap();
         assert_eq!((h.frame_id.as_str(), max), ("laser", 10.0));
         assert_eq!(beams, vec![(-1.0, Some(1.0)), (0.5, None), (1.0, None)]);
     }
@@ -406,7 +410,7 @@ pub(crate) mod tests {
             }
         }
         w.bytes(&data).u8(0);
-        let (_, pts) = point_cloud(&w.0).unwrap();
+        let (_, pts) = point_cloud(&w.0, Encoding::Cdr).unwrap();
         assert_eq!(pts, vec![[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]);
     }
 
@@ -420,24 +424,24 @@ pub(crate) mod tests {
         for v in [525.0, 0.0, 319.5, 0.0, 525.0, 239.5, 0.0, 0.0, 1.0] {
             w.f64(v);
         }
-        let (_, width, height, k) = camera_info(&w.0).unwrap();
+        let (_, width, height, k) = camera_info(&w.0, Encoding::Cdr).unwrap();
         assert_eq!((width, height, k[0], k[2], k[5]), (640, 480, 525.0, 319.5, 239.5));
         let mut w = Writer::new();
         w.u32(1).header(2, 0, "map").string("base");
         for v in [1.0, 2.0, 3.0, 0.0, 0.0, 0.0, 1.0] {
             w.f64(v);
         }
-        let tf = tf_message(&w.0).unwrap();
+        let tf = tf_message(&w.0, Encoding::Cdr).unwrap();
         assert_eq!((tf[0].0.frame_id.as_str(), tf[0].1.as_str()), ("map", "base"));
         assert_eq!(tf[0].2.translation, [1.0, 2.0, 3.0]);
         let mut w = Writer::new();
         w.u32(1_000_000).header(2, 0, "map");
-        assert!(tf_message(&w.0).unwrap_err().contains("do not fit"));
+        assert!(tf_message(&w.0, Encoding::Cdr).unwrap_err().contains("do not fit"));
         let mut w = Writer::new();
         w.header(3, 0, "odom").string("base");
         for v in [4.0, 5.0, 6.0, 0.0, 0.0, 0.0, 1.0] {
             w.f64(v);
         }
-        assert_eq!(pose(&w.0, true).unwrap().1.translation, [4.0, 5.0, 6.0]);
+        assert_eq!(pose(&w.0, Encoding::Cdr, true).unwrap().1.translation, [4.0, 5.0, 6.0]);
     }
 }

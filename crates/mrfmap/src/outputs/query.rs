@@ -308,7 +308,11 @@ pub fn query_polyline(source: &impl VoxelSource, points: &[[f64; 3]], options: &
     let (r, v) = (source.resolution(), source.has_variance());
     let mut lookup = source.lookup();
     let mut answer = SegmentAnswer::EMPTY;
-    let mut seen = rustc_hash::FxHashSet::default();
+    // Sized once from the path's length (a segment crosses at most 3 voxels per voxel edge it
+    // advances), so the set does not grow voxel by voxel.
+    let length: f64 = points.windows(2).map(|l| (0..3).map(|a| (l[1][a] - l[0][a]).abs()).sum::<f64>()).sum();
+    let bound = (length / r) as usize + 3 * points.len();
+    let mut seen = rustc_hash::FxHashSet::with_capacity_and_hasher(bound.min(1 << 20), Default::default());
     for leg in points.windows(2) {
         accumulate(&mut lookup, r, v, leg[0], leg[1], options, &mut answer, |k| seen.insert(k));
     }

@@ -860,6 +860,25 @@ fn ros2_bags_build_the_same_map_as_the_dataset() {
     let o = build(&sqlite, &m, &[depth[0], depth[1], "--fixed-frame", "map"]);
     assert!(o.status.success(), "{}", stderr(&o));
     same_maps(&tum, &m);
+    // `loo`, `eval` and `bench` take the bag too (scored against its own depth images).
+    let o = run(&["loo", s(&direct), depth[0], depth[1], "--fixed-frame", "map", "--resolution", "0.05", "--json"]);
+    let v: serde_json::Value = serde_json::from_str(&stdout(&o)).unwrap_or_else(|_| panic!("{}", stderr(&o)));
+    assert_eq!(v["views"].as_array().unwrap().len(), 4);
+    let o = run(&["eval", s(&tum), s(&direct), depth[0], depth[1], "--fixed-frame", "map", "--views", "1", "--json"]);
+    assert!(o.status.success() && stdout(&o).contains("\"accuracy\""), "{}", stderr(&o));
+    let o = run(&[
+        "bench",
+        s(&direct),
+        depth[0],
+        depth[1],
+        "--fixed-frame",
+        "map",
+        "--resolutions",
+        "0.1",
+        "--repeat",
+        "1",
+    ]);
+    assert!(o.status.success() && stdout(&o).contains("4 frames of"), "{}", stderr(&o));
     // A ROS 1 bag of the same data (through the rosbag crate and ROS 1 serialisation).
     let ros1 = dir.join("ros1.bag");
     make_bag(&data, &ros1, &["--ros1"]);

@@ -8,13 +8,14 @@ use std::time::Instant;
 use anyhow::Result;
 use mrfmap::inference::{CrmParams, EngineConfig, EngineKind, LogOddsParams, MrfEngine, MrfParams, new_engine};
 
-use super::build::{LaserOptions, Reading, marking};
+use super::build::{BagArgs, LaserOptions, Reading, marking};
 use mrfmap::frames::Frame;
 use mrfmap::source::Dataset;
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// Dataset folder, or a CARMEN laser log file.
+    /// Dataset folder, a CARMEN laser log file, or a ROS bag (with --depth-topic and
+    /// --fixed-frame or --pose-topic).
     dataset: PathBuf,
     /// Engine to time: logodds, mrf or crm.
     #[arg(long, default_value = "logodds", value_parser = ["logodds", "mrf", "crm"])]
@@ -37,6 +38,8 @@ pub struct Args {
     marking: String,
     #[command(flatten)]
     laser: LaserOptions,
+    #[command(flatten)]
+    bag: BagArgs,
 }
 
 /// Time to add the last frame to an inferred MRF of the others and run 3 iterations.
@@ -63,6 +66,13 @@ pub fn run(a: Args) -> Result<()> {
     if a.incremental && kind != EngineKind::Mrf {
         anyhow::bail!("--incremental is for --engine mrf");
     }
+    let incremental = |frames: &[Frame], r: f64| -> Result<String> {
+        Ok(if a.incremental { format!("\t{:.0}", incremental_mrf(frames, r, a.repeat)? * 1e3) } else { String::new() })
+    };
+    if BagArgs::is_bag(&a.dataset) {
+        let frames = a.bag.frames(&a.dataset, None)?;
+        return table(&a, kind, frames.len(), "frames", |_| Ok(frames.clone()), incremental);
+    }
     if a.dataset.is_file() {
         if a.incremental {
             anyhow::bail!("--incremental needs a depth dataset, not a laser log");
@@ -74,9 +84,6 @@ pub fn run(a: Args) -> Result<()> {
     }
     let dataset = Dataset::open(&a.dataset)?;
     let frames = (0..dataset.len()).map(|i| dataset.frame(i)).collect::<mrfmap::Result<Vec<_>>>()?;
-    let incremental = |frames: &[Frame], r: f64| -> Result<String> {
-        Ok(if a.incremental { format!("\t{:.0}", incremental_mrf(frames, r, a.repeat)? * 1e3) } else { String::new() })
-    };
     table(&a, kind, frames.len(), "frames", |_| Ok(frames.clone()), incremental)
 }
 

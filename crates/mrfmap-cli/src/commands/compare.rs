@@ -11,12 +11,15 @@ use mrfmap::outputs::pictures::write_text;
 
 use super::build::{MapOptions, check_indices};
 use super::eval::{MetricOptions, mean_std, write_view_pictures};
-use super::loo::{leave_one_out, load_frames};
+use super::loo::leave_one_out;
+use super::views::Views;
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// Dataset folder.
+    /// Dataset folder, or a ROS bag (with --depth-topic and --fixed-frame or --pose-topic).
     dataset: PathBuf,
+    #[command(flatten)]
+    bag: super::build::BagArgs,
     /// Engines to compare.
     #[arg(long, value_delimiter = ',', default_value = "logodds")]
     engines: Vec<String>,
@@ -77,14 +80,14 @@ fn extra_flags(a: &Args) -> String {
 
 pub fn run(a: Args) -> Result<()> {
     let kinds: Vec<EngineKind> = a.engines.iter().map(|e| e.parse()).collect::<mrfmap::Result<_>>()?;
-    let dataset = a.options.open(&a.dataset)?;
+    let dataset = Views::open(&a.dataset, a.options.noise.as_deref(), &a.bag)?;
     let views = if a.views.is_empty() { (0..dataset.len()).collect() } else { a.views.clone() };
     check_indices(dataset.len(), &views)?;
     let picture_view = a.picture_view.unwrap_or(views[0]);
-    let cam = *dataset.camera();
+    let cam = dataset.camera();
     let pixel = a.pixel.unwrap_or((cam.width / 2, cam.height / 2));
     std::fs::create_dir_all(&a.output).with_context(|| format!("creating {}", a.output.display()))?;
-    let frames = load_frames(&dataset)?;
+    let frames = dataset.frames()?;
 
     let mut table = String::from("| engine |");
     for r in &a.resolutions {

@@ -44,7 +44,7 @@ pub fn run(a: Args) -> Result<()> {
         data_dir.display()
     );
 
-    let dataset = Dataset::open(&data_dir)?;
+    let dataset = super::views::Views::Dataset(Dataset::open(&data_dir)?);
     // One view is held out of every map and scored, as the MRFMap paper's tables do.
     let held_out = HELD_OUT.min(dataset.len() - 1);
     let indices: Vec<usize> = (0..dataset.len()).filter(|&i| i != held_out).collect();

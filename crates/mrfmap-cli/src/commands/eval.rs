@@ -6,12 +6,14 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
-use mrfmap::frames::DepthImage;
 use mrfmap::map::Map;
 use mrfmap::outputs::pictures::{ray_plot_svg, write_accuracy_image, write_text, write_truth_slices};
 use mrfmap::outputs::{AccuracyParams, PeakRule};
 use mrfmap::outputs::{Scorer, TruthMetrics, ViewScore, truth_metrics};
-use mrfmap::source::{Dataset, Scene};
+use mrfmap::source::Scene;
+
+use super::build::BagArgs;
+use super::views::Views;
 
 /// Options of the accuracy metric, shared by `eval`, `loo` and `compare`.
 #[derive(clap::Args, Clone, Copy)]
@@ -56,8 +58,11 @@ impl MetricOptions {
 pub struct Args {
     /// Map file.
     map: PathBuf,
-    /// Dataset whose views are scored (its gt_depth/ when present, else depth/).
+    /// Dataset whose views are scored (its gt_depth/ when present, else depth/), or a ROS bag
+    /// (with --depth-topic and --fixed-frame or --pose-topic; scored against its own depth).
     dataset: Option<PathBuf>,
+    #[command(flatten)]
+    bag: BagArgs,
     /// Views to score (default: all).
     #[arg(long, value_delimiter = ',')]
     views: Vec<usize>,
@@ -88,23 +93,11 @@ pub fn parse_pixel(s: &str) -> Result<(u32, u32), String> {
     Ok((u.trim().parse().map_err(|e| format!("u: {e}"))?, v.trim().parse().map_err(|e| format!("v: {e}"))?))
 }
 
-/// The held-out depth of view `i`: `gt_depth/` when the dataset has it, else `depth/`.
-pub fn held_out_depth(dataset: &Dataset, i: usize) -> Result<DepthImage> {
-    match dataset.truth_depth(i)? {
-        Some(d) => Ok(d),
-        None => {
-            tracing::warn!("{}: no gt_depth/, scoring against the noisy depth/ images", dataset.root().display());
-            Ok(dataset.frame(i)?.depth)
-        }
-    }
-}
-
-/// Scores view `i` of `dataset` with `scorer`.
-pub fn score(scorer: &Scorer, dataset: &Dataset, i: usize) -> Result<ViewScore> {
-    let depth = held_out_depth(dataset, i)?;
-    let info = &dataset.frames()[i];
+/// Scores view `i` of `views` with `scorer`.
+pub fn score(scorer: &Scorer, views: &Views, i: usize) -> Result<ViewScore> {
+    let depth = views.held_out_depth(i)?;
     let t = std::time::Instant::now();
-    let s = scorer.score_view(dataset.camera(), &info.pose, &depth);
+    let s = scorer.score_view(&views.camera(), &views.pose(i), &depth);
     tracing::debug!("view {i} scored in {:.0} ms", t.elapsed().as_secs_f64() * 1e3);
     Ok(s)
 }
@@ -189,7 +182,7 @@ pub fn write_view_pictures(
     dir: &Path,
     prefix: &str,
     scorer: &Scorer,
-    dataset: &Dataset,
+    views: &Views,
     (view, score): (usize, &ViewScore),
     pixel: Option<(u32, u32)>,
     tolerance: f64,
@@ -198,9 +191,8 @@ pub fn write_view_pictures(
     let mut written = vec![dir.join(format!("{prefix}view{view}_accuracy.png"))];
     write_accuracy_image(&written[0], score)?;
     if let Some((u, v)) = pixel {
-        let depth = held_out_depth(dataset, view)?;
-        let pose = &dataset.frames()[view].pose;
-        match scorer.ray_profile(dataset.camera(), pose, &depth, (u, v)) {
+        let depth = views.held_out_depth(view)?;
+        match scorer.ray_profile(&views.camera(), &views.pose(view), &depth, (u, v)) {
             Some((steps, verdict)) => {
                 let title = format!("{prefix}view {view}, pixel ({u}, {v}): {:?}", verdict.class);
                 let path = dir.join(format!("{prefix}view{view}_ray_{u}_{v}.svg"));
@@ -238,7 +230,7 @@ pub fn run(a: Args) -> Result<()> {
     let scorer = Scorer::new(&map, a.metric.params(&map));
     let mut json_fields = Vec::new();
     if let Some(ds_path) = &a.dataset {
-        let dataset = Dataset::open(ds_path)?;
+        let dataset = Views::open(ds_path, None, &a.bag)?;
         let views = if a.views.is_empty() { (0..dataset.len()).collect() } else { a.views.clone() };
         super::build::check_indices(dataset.len(), &views)?;
         warn_if_not_held_out(&map, ds_path, &views);

@@ -7,14 +7,14 @@ use anyhow::Result;
 use mrfmap::frames::Frame;
 use mrfmap::inference::EngineKind;
 use mrfmap::outputs::{Scorer, ViewScore};
-use mrfmap::source::Dataset;
 
-use super::build::{MapOptions, build_map, check_indices};
+use super::build::{BagArgs, MapOptions, build_map, check_indices};
 use super::eval::{MetricOptions, score, views_json, views_table};
+use super::views::Views;
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// Dataset folder.
+    /// Dataset folder, or a ROS bag (with --depth-topic and --fixed-frame or --pose-topic).
     dataset: PathBuf,
     /// Inference engine: logodds, mrf or crm.
     #[arg(long, default_value = "logodds", value_parser = ["logodds", "mrf", "crm"])]
@@ -29,21 +29,18 @@ pub struct Args {
     options: MapOptions,
     #[command(flatten)]
     metric: MetricOptions,
+    #[command(flatten)]
+    bag: BagArgs,
     /// Print one JSON object instead of a table.
     #[arg(long)]
     json: bool,
-}
-
-/// Loads every frame once (leave-one-out builds reuse them N times).
-pub fn load_frames(dataset: &Dataset) -> Result<Vec<Frame>> {
-    Ok((0..dataset.len()).map(|i| dataset.frame(i)).collect::<mrfmap::Result<Vec<_>>>()?)
 }
 
 /// Leave-one-out scores of `views` for one engine and resolution; `on_view` sees each
 /// held-out build (for pictures).
 #[allow(clippy::too_many_arguments)]
 pub fn leave_one_out(
-    dataset: &Dataset,
+    dataset: &Views,
     frames: &[Frame],
     views: &[usize],
     kind: EngineKind,
@@ -68,10 +65,10 @@ pub fn leave_one_out(
 
 pub fn run(a: Args) -> Result<()> {
     let kind: EngineKind = a.engine.parse()?;
-    let dataset = a.options.open(&a.dataset)?;
+    let dataset = Views::open(&a.dataset, a.options.noise.as_deref(), &a.bag)?;
     let views = if a.views.is_empty() { (0..dataset.len()).collect() } else { a.views.clone() };
     check_indices(dataset.len(), &views)?;
-    let frames = load_frames(&dataset)?;
+    let frames = dataset.frames()?;
     let scores = leave_one_out(&dataset, &frames, &views, kind, a.resolution, &a.options, &a.metric, |_, _, _| Ok(()))?;
     if a.json {
         println!("{{\"engine\": \"{kind}\", \"resolution\": {}, {}}}", a.resolution, views_json(&scores));

@@ -18,6 +18,7 @@ pub mod query;
 pub mod scaling;
 pub mod simulate;
 pub mod view;
+pub mod views;
 
 /// clap parser for a strictly positive, finite number (resolution, max range).
 pub fn positive(s: &str) -> Result<f64, String> {

@@ -16,6 +16,7 @@ use mrfmap::outputs::{
     query_polyline, query_segments, write_octomap, write_ply,
 };
 use mrfmap::rays::{Aabb, RayLimits};
+use mrfmap::source::bag::{Bag, BagOptions, bag_frames};
 use nalgebra::{Matrix3, Rotation3, Translation3, UnitQuaternion};
 use numpy::{PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2};
 use pyo3::exceptions::{PyOSError, PyValueError};
@@ -240,6 +241,63 @@ impl Mapper {
             .map_err(py_err)?;
         *count += 1;
         Ok(id)
+    }
+
+    /// Adds the posed depth images of a ROS bag (see the stub file); returns how many.
+    #[pyo3(signature = (path, depth_topic, fixed_frame=None, pose_topic=None, camera_info_topic=None, max_pose_gap=0.1))]
+    #[allow(clippy::too_many_arguments)]
+    fn add_bag(
+        &self,
+        py: Python<'_>,
+        path: PathBuf,
+        depth_topic: String,
+        fixed_frame: Option<String>,
+        pose_topic: Option<String>,
+        camera_info_topic: Option<String>,
+        max_pose_gap: f64,
+    ) -> PyResult<usize> {
+        let options = BagOptions { depth_topic, camera_info_topic, fixed_frame, pose_topic, max_pose_gap };
+        let (frames, _skipped) = py.detach(|| bag_frames(&Bag::open(&path)?, &options, None)).map_err(py_err)?;
+        let Some(first) = frames.first() else {
+            return Err(PyValueError::new_err(format!(
+                "{}: no image of {} has a pose",
+                path.display(),
+                options.depth_topic
+            )));
+        };
+        let (c, m) = (first.camera, self.camera);
+        if (c.fx, c.fy, c.cx, c.cy, c.width, c.height) != (m.fx, m.fy, m.cx, m.cy, m.width, m.height) {
+            return Err(PyValueError::new_err(format!(
+                "{}: the bag's camera (fx {}, fy {}, cx {}, cy {}, {}x{}) is not this mapper's",
+                path.display(),
+                c.fx,
+                c.fy,
+                c.cx,
+                c.cy,
+                c.width,
+                c.height
+            )));
+        }
+        let start = *self.frames.lock().unwrap_or_else(|p| p.into_inner());
+        let n = frames.len();
+        let mut added = 0;
+        let result = py.detach(|| {
+            let mut inner = self.lock();
+            for mut frame in frames {
+                frame.index = start + added;
+                frame.noise = self.noise.clone();
+                match &mut *inner {
+                    Inner::Mrf(e) => e.add_keyframe(frame).map(|_| ())?,
+                    Inner::Online(e) => e.integrate(&frame)?,
+                }
+                added += 1;
+            }
+            Ok::<(), mrfmap::Error>(())
+        });
+        // Frames added before an error still count.
+        *self.frames.lock().unwrap_or_else(|p| p.into_inner()) = start + added;
+        result.map_err(py_err)?;
+        Ok(n)
     }
 
     /// Adds a range scan: beam directions (N, 3) in the sensor frame, ranges (N,) in metres

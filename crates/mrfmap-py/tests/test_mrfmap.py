@@ -190,3 +190,48 @@ def test_path_queries_with_confidence(engine):
         m.query_points(starts, unknown=1.5)
     with pytest.raises(ValueError, match="min < max"):
         m.query_boxes(np.array([[0.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 1.0]]))
+
+
+def write_wall_bag(path, depths, xs):
+    """An MCAP bag of depth images (32FC1) with CameraInfo and /tf map -> cam, written by the
+    pure-Python `rosbags` package."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    T = ts.types
+    with Writer(path, version=8, storage_plugin=StoragePlugin.MCAP) as w:
+        ci = w.add_connection("/cam/depth", "sensor_msgs/msg/Image", typestore=ts)
+        cc = w.add_connection("/cam/camera_info", "sensor_msgs/msg/CameraInfo", typestore=ts)
+        ct = w.add_connection("/tf", "tf2_msgs/msg/TFMessage", typestore=ts)
+        for i, (depth, x) in enumerate(zip(depths, xs)):
+            stamp = T["builtin_interfaces/msg/Time"](sec=i + 1, nanosec=0)
+            hdr = T["std_msgs/msg/Header"](stamp=stamp, frame_id="cam")
+            k = np.array([CAM["fx"], 0, CAM["cx"], 0, CAM["fy"], CAM["cy"], 0, 0, 1], dtype=np.float64)
+            roi = T["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+            info = T["sensor_msgs/msg/CameraInfo"](header=hdr, height=60, width=80, distortion_model="", d=np.zeros(0), k=k, r=np.eye(3).flatten(), p=np.zeros(12), binning_x=0, binning_y=0, roi=roi)
+            V3, Q = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Quaternion"]
+            tr = T["geometry_msgs/msg/Transform"](translation=V3(x=x, y=0.0, z=0.0), rotation=Q(x=0.0, y=0.0, z=0.0, w=1.0))
+            tfs = T["geometry_msgs/msg/TransformStamped"](header=T["std_msgs/msg/Header"](stamp=stamp, frame_id="map"), child_frame_id="cam", transform=tr)
+            img = T["sensor_msgs/msg/Image"](header=hdr, height=60, width=80, encoding="32FC1", is_bigendian=0, step=320, data=depth.astype("<f4").view(np.uint8).reshape(-1))
+            ns = (i + 1) * 10**9
+            w.write(cc, ns, ts.serialize_cdr(info, "sensor_msgs/msg/CameraInfo"))
+            w.write(ct, ns, ts.serialize_cdr(T["tf2_msgs/msg/TFMessage"](transforms=[tfs]), "tf2_msgs/msg/TFMessage"))
+            w.write(ci, ns, ts.serialize_cdr(img, "sensor_msgs/msg/Image"))
+
+
+@pytest.mark.parametrize("engine", ["logodds", "crm"])
+def test_add_bag_equals_add_frame(tmp_path, engine):
+    depths, xs = [wall(), wall(2.1)], [0.0, 0.02]
+    write_wall_bag(tmp_path / "bag", depths, xs)
+    a = mrfmap.Mapper(0.05, engine=engine, particles=21, **CAM)
+    assert a.add_bag(tmp_path / "bag", "/cam/depth", fixed_frame="map") == 2
+    b = mrfmap.Mapper(0.05, engine=engine, particles=21, **CAM)
+    for d, x in zip(depths, xs):
+        b.add_frame(d, pose(x))
+    pts = np.array([[0.0, 0.0, z] for z in np.arange(1.0, 2.3, 0.05)])
+    np.testing.assert_array_equal(a.query(pts)[0], b.query(pts)[0])
+    with pytest.raises(ValueError, match="camera"):
+        mrfmap.Mapper(0.05, fx=61.0, fy=60.0, cx=39.5, cy=29.5, width=80, height=60).add_bag(tmp_path / "bag", "/cam/depth", fixed_frame="map")
+    with pytest.raises(ValueError, match="does not connect|no image"):
+        a.add_bag(tmp_path / "bag", "/cam/depth", fixed_frame="world")

@@ -63,6 +63,22 @@ class Mapper:
         sensor-to-world ``pose`` (4x4). Log-odds and CRM only (``ValueError`` for the MRF).
         The mapper's noise model applies in range when it has no per-patch table.
         """
+    def add_bag(
+        self,
+        path: os.PathLike[str] | str,
+        depth_topic: str,
+        fixed_frame: Optional[str] = None,
+        pose_topic: Optional[str] = None,
+        camera_info_topic: Optional[str] = None,
+        max_pose_gap: float = 0.1,
+    ) -> int:
+        """Adds every posed depth image of a ROS bag (``.mcap``, ``.db3``, ROS 1 ``.bag`` or a bag
+        folder), read without ROS: images of ``depth_topic`` (``sensor_msgs/Image`` 16UC1 / 32FC1
+        or ``compressedDepth``), each posed in ``fixed_frame`` from ``/tf`` and ``/tf_static``
+        or by ``pose_topic`` (``PoseStamped`` / ``Odometry``) at its stamp. Images without a pose
+        within ``max_pose_gap`` s are skipped. The bag's CameraInfo (default: ``camera_info``
+        beside the depth topic) must match this mapper's camera. Returns the images added;
+        ``ValueError`` or ``OSError`` naming the bag and topic otherwise."""
     def remove_keyframe(self, id: int) -> None:
         """MRF only: removes a keyframe; after ``run`` the map is as if it was never added."""
     def set_pose(self, id: int, pose: npt.NDArray[np.float64]) -> None:

@@ -853,8 +853,11 @@ fn ros2_bags_build_the_same_map_as_the_dataset() {
     assert!(build(&chain, &m, &[depth[0], depth[1], "--fixed-frame", "map"]).status.success());
     same_maps(&tum, &m);
     let file = chain.join("chain.mcap");
-    assert!(build(&file, &m, &[depth[0], depth[1], "--pose-topic", "/camera/pose"]).status.success());
-    same_maps(&tum, &m);
+    for topic in ["/camera/pose", "/camera/odom", "/camera/transform"] {
+        let o = build(&file, &m, &[depth[0], depth[1], "--pose-topic", topic]);
+        assert!(o.status.success(), "{topic}: {}", stderr(&o));
+        same_maps(&tum, &m);
+    }
     let sqlite = dir.join("sqlite");
     make_bag(&data, &sqlite, &["--db3"]);
     let o = build(&sqlite, &m, &[depth[0], depth[1], "--fixed-frame", "map"]);

@@ -149,6 +149,9 @@ def main():
         c_tf = w.add_connection("/tf", TF.__msgtype__, typestore=ts)
         c_static = w.add_connection("/tf_static", TF.__msgtype__, typestore=ts)
         c_pose = w.add_connection("/camera/pose", PS.__msgtype__, typestore=ts)
+        Odom = ts.types["nav_msgs/msg/Odometry"]
+        c_odom = w.add_connection("/camera/odom", Odom.__msgtype__, typestore=ts)
+        c_ts = w.add_connection("/camera/transform", TS.__msgtype__, typestore=ts)
         stamp = lambda t: Time(sec=int(t), nanosec=int(round((t - int(t)) * 1e9)))
         tfs = lambda t, parent, child, p: TS(header=Header(stamp=stamp(t), frame_id=parent), child_frame_id=child, transform=Tr(translation=V3(x=p[0], y=p[1], z=p[2]), rotation=Q(x=p[3], y=p[4], z=p[5], w=p[6])))
         ser = lambda m: (ts.serialize_ros1 if ros1 else ts.serialize_cdr)(m, m.__msgtype__)
@@ -177,7 +180,13 @@ def main():
             else:
                 img = Image(header=hdr, height=height, width=width, encoding="32FC1", is_bigendian=0, step=width * 4, data=depth.view(np.uint8))
             w.write(c_img, ns, ser(img))
-            w.write(c_pose, ns, ser(PS(header=Header(stamp=stamp(t), frame_id="map"), pose=Pose(position=Point(x=p[0], y=p[1], z=p[2]), orientation=Q(x=p[3], y=p[4], z=p[5], w=p[6])))))
+            the_pose = Pose(position=Point(x=p[0], y=p[1], z=p[2]), orientation=Q(x=p[3], y=p[4], z=p[5], w=p[6]))
+            w.write(c_pose, ns, ser(PS(header=Header(stamp=stamp(t), frame_id="map"), pose=the_pose)))
+            PwC, TwC, Tw, V3z = (ts.types[n] for n in ["geometry_msgs/msg/PoseWithCovariance", "geometry_msgs/msg/TwistWithCovariance", "geometry_msgs/msg/Twist", "geometry_msgs/msg/Vector3"])
+            zero = V3z(x=0.0, y=0.0, z=0.0)
+            odom = Odom(header=Header(stamp=stamp(t), frame_id="map"), child_frame_id=optical, pose=PwC(pose=the_pose, covariance=np.zeros(36)), twist=TwC(twist=Tw(linear=zero, angular=zero), covariance=np.zeros(36)))
+            w.write(c_odom, ns, ser(odom))
+            w.write(c_ts, ns, ser(tfs(t, "map", optical, p)))
 
 
 if __name__ == "__main__":

@@ -226,7 +226,7 @@ pub struct BagOptions {
     pub camera_info_topic: Option<String>,
     /// Poses from the transform tree, in this frame...
     pub fixed_frame: Option<String>,
-    /// ...or from this `PoseStamped` / `Odometry` topic (the camera's pose).
+    /// ...or from this `PoseStamped`, `Odometry` or `TransformStamped` topic (the camera's pose).
     pub pose_topic: Option<String>,
     /// Largest gap between two pose samples an image's stamp may fall in (seconds).
     pub max_pose_gap: f64,
@@ -250,7 +250,8 @@ fn pose_source(bag: &Bag, options: &BagOptions) -> Result<PoseSource> {
         (Some(topic), _) => {
             let mut series = tf::Series::default();
             bag.for_each(&[topic.as_str()], |t, msgtype, _, data, encoding| {
-                let odometry = msgtype.contains("Odometry");
+                // Odometry and TransformStamped both put a child frame id before the pose.
+                let odometry = msgtype.contains("Odometry") || msgtype.contains("TransformStamped");
                 let (h, p) = msgs::pose(data, encoding, odometry).map_err(|m| bad(format!("{t}: {m}")))?;
                 series.push(h.stamp, &p);
                 Ok(())

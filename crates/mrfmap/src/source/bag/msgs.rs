@@ -298,8 +298,9 @@ pub fn tf_message(data: &[u8], encoding: Encoding) -> CdrResult<Vec<(Header, Str
         .collect()
 }
 
-/// `geometry_msgs/PoseStamped` or `nav_msgs/Odometry`: the header and the pose (for odometry,
-/// of `child_frame_id` in the header's frame).
+/// `geometry_msgs/PoseStamped`, `nav_msgs/Odometry` or `geometry_msgs/TransformStamped`: the
+/// header and the pose (with `odometry`, the message has a `child_frame_id` before it: Odometry
+/// and TransformStamped; the pose is the child's in the header's frame).
 pub fn pose(data: &[u8], encoding: Encoding, odometry: bool) -> CdrResult<(Header, Transform)> {
     let mut c = Cdr::with(data, encoding)?;
     let h = header(&mut c)?;

@@ -17,6 +17,7 @@ fn shared(name: &str) -> Option<PathBuf> {
 }
 
 #[test]
+#[cfg_attr(not(shared_data), ignore = "needs ../shared/data, absent in a plain clone")]
 fn icl_livingroom_loads_with_negative_fy() {
     let Some(root) = shared("icl-livingroom-5") else {
         return;
@@ -32,6 +33,7 @@ fn icl_livingroom_loads_with_negative_fy() {
 }
 
 #[test]
+#[cfg_attr(not(shared_data), ignore = "needs ../shared/data, absent in a plain clone")]
 fn coffin_world_loads_with_patch_noise_and_truth() {
     let Some(root) = shared("coffin-world") else {
         return;
@@ -67,6 +69,7 @@ fn coffin_world_loads_with_patch_noise_and_truth() {
 /// 104,758 at 0.02 m. Our log-odds engine must agree within 3%, and finding the crossed voxels
 /// by projection must give the same map as walking every ray.
 #[test]
+#[cfg_attr(not(shared_data), ignore = "needs ../shared/data, absent in a plain clone")]
 fn logodds_matches_octomap_occupied_counts() {
     let Some(root) = shared("icl-livingroom-5") else {
         return;
@@ -96,6 +99,7 @@ fn logodds_matches_octomap_occupied_counts() {
 }
 
 #[test]
+#[cfg_attr(not(shared_data), ignore = "needs ../shared/data, absent in a plain clone")]
 fn intel_lab_log_reads_and_maps_the_lab() {
     use mrfmap::inference::CrmEngine;
     use mrfmap::source::{CarmenLog, CarmenOptions, Misses};

@@ -172,3 +172,17 @@ fn live_engines_answer_like_their_maps() {
         assert_eq!(query_box(&live, &region, &opts).unwrap(), query_box(&map, &region, &opts).unwrap());
     }
 }
+
+#[test]
+fn pictures_and_grids_of_far_apart_voxels_are_refused_not_allocated() {
+    use mrfmap::map::VoxelKey;
+    let mut map = Map::new("logodds", 0.05).unwrap();
+    for x in [0, 2_000_000] {
+        map.voxels.insert(VoxelKey([x, 0, 0]), MapVoxel { occupancy: 0.9, variance: 0.0 });
+        map.voxels.insert(VoxelKey([0, x, 0]), MapVoxel { occupancy: 0.9, variance: 0.0 });
+    }
+    let e = mrfmap::outputs::slice_map(&map, 2, 0.01).unwrap_err().to_string();
+    assert!(e.contains("crop the map"), "{e}");
+    let e = map.project(0.0, 0.05).unwrap_err().to_string();
+    assert!(e.contains("crop it first"), "{e}");
+}

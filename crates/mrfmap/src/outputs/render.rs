@@ -214,7 +214,16 @@ pub fn slice_map(map: &Map, axis: usize, value: f64) -> Result<Canvas> {
             hi[j] = hi[j].max(key.0[ax]);
         }
     }
-    let (nw, nh) = ((hi[0] - lo[0] + 1) as u32, (hi[1] - lo[1] + 1) as u32);
+    let (nw, nh) = ((hi[0] as i64 - lo[0] as i64 + 1) as u64, (hi[1] as i64 - lo[1] as i64 + 1) as u64);
+    // One pixel per voxel at least: a sparse map whose voxels lie kilometres apart would ask
+    // for a picture no machine holds.
+    if nw * nh > MAX_SLICE_PIXELS {
+        return Err(Error::Invalid(format!(
+            "the slice spans {nw} x {nh} voxels, more than a picture of {MAX_SLICE_PIXELS} pixels holds: crop the map first \
+             (`mrfmap crop`)"
+        )));
+    }
+    let (nw, nh) = (nw as u32, nh as u32);
     let scale = (600 / nw.max(nh)).max(1) as i64;
     let top = 28i64;
     let legend = format!("{} = {value}: OCCUPANCY 0 TO 1, UNKNOWN GREY", names[axis].to_uppercase());
@@ -229,6 +238,9 @@ pub fn slice_map(map: &Map, axis: usize, value: f64) -> Result<Canvas> {
     }
     Ok(c)
 }
+
+/// Most voxels a slice picture may show (one pixel each at least).
+const MAX_SLICE_PIXELS: u64 = 1 << 26;
 
 /// A 2D occupancy grid as a picture: occupancy (viridis 0 to 1) and sigma (viridis 0 to 0.5)
 /// side by side, unknown grey, north up. Grids larger than `max_side` cells on a side are

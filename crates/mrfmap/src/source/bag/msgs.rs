@@ -216,7 +216,13 @@ fn rvl(body: &[u8]) -> CdrResult<(u32, u32, Vec<u16>)> {
     let cols = u32::from_le_bytes(body[0..4].try_into().expect("4 bytes"));
     let rows = u32::from_le_bytes(body[4..8].try_into().expect("4 bytes"));
     let n = cols as usize * rows as usize;
-    if cols == 0 || rows == 0 || cols > crate::frames::MAX_SIDE || rows > crate::frames::MAX_SIDE {
+    // A few bytes of RVL can describe a huge image of zeros: the size is checked first.
+    if cols == 0
+        || rows == 0
+        || cols > crate::frames::MAX_SIDE
+        || rows > crate::frames::MAX_SIDE
+        || n > crate::frames::MAX_PIXELS
+    {
         return Err(format!("RVL image size {cols}x{rows} is not a depth image's"));
     }
     let words: Vec<u32> =
@@ -244,7 +250,7 @@ fn rvl(body: &[u8]) -> CdrResult<(u32, u32, Vec<u16>)> {
             }
         }
     };
-    let mut out = Vec::with_capacity(n);
+    let mut out = Vec::new();
     let mut previous: i64 = 0;
     while out.len() < n {
         let zeros = vle()? as usize;
@@ -262,7 +268,8 @@ fn rvl(body: &[u8]) -> CdrResult<(u32, u32, Vec<u16>)> {
         for _ in 0..values {
             let positive = vle()? as i64;
             let delta = (positive >> 1) ^ -(positive & 1);
-            previous += delta;
+            // A corrupt stream can hold deltas near i64's range: saturate, the clamp follows.
+            previous = previous.saturating_add(delta);
             out.push(previous.clamp(0, u16::MAX as i64) as u16);
         }
     }
@@ -376,6 +383,23 @@ pub(crate) mod tests {
         w.header(0, 0, "cam").u32(2).u32(2).string("16UC1").u8(0).u32(4).bytes(&[0; 6]);
         assert!(depth_image(&w.0, Encoding::Cdr).unwrap_err().contains("needs more than"));
         assert!(depth_image(&w.0[..20], Encoding::Cdr).unwrap_err().contains("message ends inside"));
+    }
+
+    #[test]
+    fn corrupt_rvl_streams_found_by_fuzzing() {
+        // A delta near i64::MAX (overflowed `previous`), and a 65535 x 65535 image of zeros
+        // (allocated gigabytes before its size was checked).
+        let mut body = vec![];
+        body.extend_from_slice(&2u32.to_le_bytes());
+        body.extend_from_slice(&1u32.to_le_bytes());
+        body.extend_from_slice(&[0x1F, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF, 0xFF]);
+        let _ = rvl(&body);
+        let mut huge = vec![];
+        huge.extend_from_slice(&65535u32.to_le_bytes());
+        huge.extend_from_slice(&65535u32.to_le_bytes());
+        huge.extend_from_slice(&[0; 8]);
+        assert!(rvl(&huge).unwrap_err().contains("not a depth image's"));
+        // Decoding against an independent encoder: the CLI test's Python RVL bag.
     }
 
     #[test]

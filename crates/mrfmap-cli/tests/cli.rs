@@ -882,6 +882,16 @@ fn ros2_bags_build_the_same_map_as_the_dataset() {
         "1",
     ]);
     assert!(o.status.success() && stdout(&o).contains("4 frames of"), "{}", stderr(&o));
+    // Images logged out of stamp order: a warning naming the topic, the same map.
+    let reversed = dir.join("reversed");
+    make_bag(&data, &reversed, &["--direct", "--reverse"]);
+    let o = build(&reversed, &m, &[depth[0], depth[1], "--fixed-frame", "map"]);
+    assert!(
+        o.status.success() && stderr(&o).contains("/camera/depth/image_rect_raw: image 2 is stamped before"),
+        "{}",
+        stderr(&o)
+    );
+    same_maps(&tum, &m);
     // A ROS 1 bag of the same data (through the rosbag crate and ROS 1 serialisation).
     let ros1 = dir.join("ros1.bag");
     make_bag(&data, &ros1, &["--ros1"]);

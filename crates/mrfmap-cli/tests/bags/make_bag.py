@@ -9,7 +9,9 @@ sensor_msgs/CompressedImage in compressedDepth format (16UC1 millimetres).
 
 With --ros1 it writes a ROS 1 bag (OUT is the .bag file).
 
-usage: make_bag.py DATASET OUT [--direct] [--db3] [--ros1] [--compressed png|rvl]
+With --reverse the images are logged in reverse stamp order.
+
+usage: make_bag.py DATASET OUT [--direct] [--db3] [--ros1] [--reverse] [--compressed png|rvl]
 """
 
 import struct
@@ -159,7 +161,9 @@ def main():
         base_cam = [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]  # identity: exact composition
         if not direct:
             w.write(c_static, 0, ser(TF(transforms=[tfs(0.0, "base", optical, base_cam)])))
-        for t, path in ((float(r[0]), r[1]) for r in table(root / "depth.txt")):
+        rows = [(float(r[0]), r[1]) for r in table(root / "depth.txt")]
+        # --reverse logs the images last stamp first (as a bag recorded out of order).
+        for t, path in reversed(rows) if "--reverse" in sys.argv else rows:
             p = min(poses.items(), key=lambda kv: abs(kv[0] - t))[1]
             ns = int(round(t * 1e9)) + 1
             width, height, rows = read_png16(root / path)

@@ -64,7 +64,8 @@ pub fn run(a: Args) -> Result<()> {
         }
     }
     if let Some(path) = &a.grid2d {
-        let (lo, hi) = map.bounds().context("the map is empty: no grid to write")?;
+        let (lo, hi) =
+            map.bounds().with_context(|| format!("{}: the map is empty: no grid to write", a.map.display()))?;
         let grid = map.project(lo[2], hi[2])?;
         let f = write_map_server(&grid, path, a.threshold, a.sigma)?;
         let [occ, free, unknown] = f.counts;

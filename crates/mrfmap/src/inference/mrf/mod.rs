@@ -794,7 +794,17 @@ impl Engine for MrfEngine {
                     if r.converged { "converged" } else { "not converged (sweep cap)" }
                 );
             }
-            None => self.run_with_progress(self.params.iterations, progress),
+            None => {
+                self.run_with_progress(self.params.iterations, progress);
+                let rays: usize = self.keyframes.iter().map(|k| k.frame.depth.valid_count()).sum();
+                tracing::info!(
+                    "MRF: {} sweeps over {} of {} keyframes, {} rays traced per sweep of all keyframes",
+                    self.params.iterations,
+                    self.last_run,
+                    self.keyframes.len(),
+                    rays
+                );
+            }
         }
         Ok(())
     }

@@ -408,7 +408,16 @@ pub fn check_build(config: &EngineConfig, extent: Option<Extent>, readings: usiz
     let Some(extent) = extent else { return Ok(()) };
     let what = format!("a {} map at {} m", config.kind, config.resolution);
     let estimate = estimate_memory(config, &extent, readings);
-    tracing::debug!("{what}: memory estimate {}", limits::human(estimate));
+    // Big builds say so before they start (a fine resolution can take minutes and gigabytes).
+    if estimate > (1u64 << 30) as f64 {
+        tracing::info!(
+            "{what}: expect about {} of memory (limit {})",
+            limits::human(estimate),
+            limits::human(limits::max_memory() as f64)
+        );
+    } else {
+        tracing::debug!("{what}: memory estimate {}", limits::human(estimate));
+    }
     limits::check_memory(&what, estimate, "use a coarser --resolution, or map less with --bounds or --max-range")?;
     if config.resolution > extent.size() {
         tracing::warn!(

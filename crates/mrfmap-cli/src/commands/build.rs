@@ -354,19 +354,29 @@ const SAMPLE_STRIDE: u32 = 8;
 /// Frames decoded for the memory estimate, at most.
 const SAMPLE_FRAMES: usize = 8;
 
-/// Where the frames `indices` of `dataset` look, estimated from every pose and the end points
-/// of a sample of pixels of a few frames (decoding every frame twice would double the I/O).
+/// Where the frames `indices` of `dataset` look, estimated from every pose and a few decoded
+/// frames (decoding every frame twice would double the I/O).
 pub fn dataset_extent(dataset: &Dataset, indices: &[usize], config: &EngineConfig) -> Result<Option<Extent>> {
     let step = indices.len().div_ceil(SAMPLE_FRAMES).max(1);
-    let sampled: Vec<usize> = indices.iter().copied().step_by(step).collect();
-    let cam = *dataset.camera();
+    let sampled = indices.iter().step_by(step).map(|&i| dataset.frame(i)).collect::<mrfmap::Result<Vec<_>>>()?;
+    let positions = indices.iter().map(|&i| dataset.frames()[i].pose.translation.vector.into());
+    Ok(frames_extent(positions, &sampled, indices.len(), config))
+}
+
+/// Where `count` posed depth frames look: every one of their `positions`, and the end points of
+/// every `SAMPLE_STRIDE`-th pixel of the `sampled` frames, whose ray length is scaled up to all.
+pub fn frames_extent(
+    positions: impl Iterator<Item = [f64; 3]>,
+    sampled: &[Frame],
+    count: usize,
+    config: &EngineConfig,
+) -> Option<Extent> {
     let max_range = config.limits.max_range.unwrap_or(f64::INFINITY);
-    let mut points: Vec<[f64; 3]> =
-        indices.iter().map(|&i| dataset.frames()[i].pose.translation.vector.into()).collect();
+    let mut points: Vec<[f64; 3]> = positions.collect();
     let mut length = 0.0;
     let mut surfaces = Vec::new();
-    for &i in &sampled {
-        let frame = dataset.frame(i)?;
+    for frame in sampled {
+        let cam = &frame.camera;
         let mut surface = Vec::new();
         for v in (0..cam.height).step_by(SAMPLE_STRIDE as usize) {
             for u in (0..cam.width).step_by(SAMPLE_STRIDE as usize) {
@@ -382,8 +392,8 @@ pub fn dataset_extent(dataset: &Dataset, indices: &[usize], config: &EngineConfi
         }
         surfaces.push(surface);
     }
-    let scale = (SAMPLE_STRIDE * SAMPLE_STRIDE) as f64 * indices.len() as f64 / sampled.len().max(1) as f64;
-    Ok(Extent::new(points, length * scale, config).map(|e| e.with_surface(&surfaces, config.resolution)))
+    let scale = (SAMPLE_STRIDE * SAMPLE_STRIDE) as f64 * count as f64 / sampled.len().max(1) as f64;
+    Extent::new(points, length * scale, config).map(|e| e.with_surface(&surfaces, config.resolution))
 }
 
 /// Where laser scans look: every beam's end point (misses at the maximum range).
@@ -476,13 +486,10 @@ pub fn run(a: Args) -> Result<()> {
     } else if BagArgs::is_bag(&a.dataset) {
         let frames = a.bag.frames(&a.dataset, a.options.noise.as_deref())?;
         let indices = select_frames(frames.len(), &a.frames, &a.exclude)?;
-        let points = frames.iter().flat_map(|f| {
-            let p: [f64; 3] = f.pose.translation.vector.into();
-            let reach = f.depth.data().iter().fold(0.0f32, |m, z| m.max(*z)) as f64 * 1.5;
-            [[p[0] - reach, p[1] - reach, p[2] - reach], [p[0] + reach, p[1] + reach, p[2] + reach]]
-        });
-        let length: f64 = frames.iter().map(|f| f.depth.data().iter().map(|z| *z as f64 * 1.2).sum::<f64>()).sum();
-        check_build(&config, Extent::new(points, length, &config), indices.len())?;
+        let step = indices.len().div_ceil(SAMPLE_FRAMES).max(1);
+        let sampled: Vec<Frame> = indices.iter().step_by(step).map(|&i| frames[i].clone()).collect();
+        let positions = indices.iter().map(|&i| frames[i].pose.translation.vector.into());
+        check_build(&config, frames_extent(positions, &sampled, indices.len(), &config), indices.len())?;
         tracing::info!(
             "{}: {} of {} depth images, engine {kind}, resolution {} m",
             a.dataset.display(),

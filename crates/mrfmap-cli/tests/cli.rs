@@ -648,6 +648,8 @@ fn query_json_contract_and_map_operations() {
     assert!(o.status.success() && stdout(&o).contains(&format!("{} cubes", map.occupied_count())), "{}", stdout(&o));
     let bytes = std::fs::read(&mcap).unwrap();
     assert!(bytes.starts_with(b"\x89MCAP0\r\n") && bytes.ends_with(b"\x89MCAP0\r\n"));
+    let o = run(&["--max-memory", "4M", "export", s(&map_path), "--mcap", s(&dir.join("big.mcap"))]);
+    assert!(!o.status.success() && stderr(&o).contains("a Foxglove scene of"), "{}", stderr(&o));
 
     // The floor-to-head slab as a map_server grid: occupied where the box stands.
     let yaml = dir.join("grid.yaml");

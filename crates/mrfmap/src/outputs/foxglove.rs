@@ -120,6 +120,13 @@ fn scene(map: &Map, options: &SceneOptions) -> (Value, SceneSummary) {
 /// Writes `map` as an MCAP file Foxglove opens: one `foxglove.SceneUpdate` on
 /// [`SCENE_TOPIC`] (atomically: temp file + rename).
 pub fn write_scene_mcap(map: &Map, path: &Path, options: &SceneOptions) -> Result<SceneSummary> {
+    // A cube is about 1 KiB as a JSON value and again as text: checked before building them.
+    let cubes = map.voxels.iter().filter(|(_, v)| v.occupancy > options.threshold).count();
+    crate::limits::check_memory(
+        &format!("a Foxglove scene of {cubes} cubes"),
+        cubes as f64 * 2048.0,
+        "crop the map or raise --threshold",
+    )?;
     let (message, summary) = scene(map, options);
     let encode = || -> std::result::Result<Vec<u8>, mcap::McapError> {
         let mut out = mcap::Writer::new(Cursor::new(Vec::new()))?;

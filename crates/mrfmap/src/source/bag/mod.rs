@@ -359,6 +359,13 @@ pub fn bag_frames(bag: &Bag, options: &BagOptions, noise: Option<NoiseModel>) ->
             other => return Err(bad(format!("{topic} carries {other}, not sensor_msgs/msg/Image or CompressedImage"))),
         };
         images += 1;
+        // Decoded frames stay in memory (4 bytes a pixel): stop before they outgrow the limit.
+        let held = (frames.len() + 1) as f64 * camera.pixel_count() as f64 * 4.0;
+        crate::limits::check_memory(
+            &format!("decoding {} images of {topic}", frames.len() + 1),
+            held,
+            "map part of the bag (split it, or export-dataset and build with --frames)",
+        )?;
         let (h, depth) = decode(data, encoding).map_err(|m| bad(format!("{topic}: image {images}: {m}")))?;
         if (depth.width(), depth.height()) != (camera.width, camera.height) {
             return Err(bad(format!(

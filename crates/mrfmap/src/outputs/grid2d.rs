@@ -224,6 +224,12 @@ mod tests {
         let (_, _, px) = parse_pgm(&sigma).unwrap();
         // Top row is y row 1: sigma 0.5 -> 255, unknown -> 255, 0 -> 0.
         assert_eq!(px, &[255, 255, 0, 51, 153, 255]);
+        // Broken files name what is wrong.
+        std::fs::write(dir.join("m.yaml"), "image: m.pgm\nresolution: 0.05\n").unwrap();
+        assert!(read_map_server(&dir.join("m.yaml")).unwrap_err().to_string().contains("missing `origin`"));
+        assert!(parse_pgm(b"P2\n1 1\n255\n0").unwrap_err().contains("not a binary PGM"));
+        assert!(parse_pgm(b"P5\n4 4\n255\n\x00").unwrap_err().contains("truncated"));
+        assert!(parse_pgm(b"P5\n1 1\n65535\n\x00\x00").unwrap_err().contains("8-bit"));
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

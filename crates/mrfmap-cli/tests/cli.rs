@@ -505,33 +505,13 @@ fn logodds_marking_walk_and_project_build_the_same_map() {
 }
 
 #[test]
-fn mrf_message_modes_reference_metric_and_bad_values_and_plain_errors() {
+fn mrf_reference_metric_and_bad_values_and_plain_errors() {
     let dir = workdir("mrf-modes");
     let data = dataset(&dir);
-    let occupied = |messages: &str| {
-        let map = dir.join(format!("{messages}.mrfmap"));
-        let o = run(&[
-            "build",
-            s(&data),
-            "-o",
-            s(&map),
-            "--resolution",
-            "0.05",
-            "--engine",
-            "mrf",
-            "--messages",
-            messages,
-            "-q",
-        ]);
-        assert!(o.status.success(), "{}", stderr(&o));
-        let map = mrfmap::map::Map::load(&map).unwrap();
-        assert_eq!(map.params.get("messages").map(String::as_str), Some(messages));
-        map.occupied_count()
-    };
-    // Which marks more depends on how many rays share a voxel (few here: 80x60 images);
-    // `tests/mrf.rs` compares the two where it is known. Here: both run and differ.
-    let (sum, average) = (occupied("sum"), occupied("average"));
-    assert!(sum > 0 && average > 0 && sum != average, "sum {sum}, average {average}");
+    let map = dir.join("sum.mrfmap");
+    let o = run(&["build", s(&data), "-o", s(&map), "--resolution", "0.05", "--engine", "mrf", "-q"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(mrfmap::map::Map::load(&map).unwrap().occupied_count() > 0);
     // Both metrics score the map; the reference metric's name reaches the report.
     for metric in ["algorithms", "reference"] {
         let o = run(&["eval", s(&dir.join("sum.mrfmap")), s(&data), "--views", "0", "--metric", metric, "--json"]);
@@ -565,7 +545,6 @@ fn mrf_message_modes_reference_metric_and_bad_values_and_plain_errors() {
     assert!(!o.status.success() && stderr(&o).contains("output folder"), "{}", stderr(&o));
     let o = run(&["info", s(&dir)]);
     assert!(!o.status.success() && stderr(&o).matches("os error").count() == 1, "{}", stderr(&o));
-    build_fails(&data, &["--engine", "mrf", "--messages", "mean"], &["mean", "average"]);
 }
 
 #[test]

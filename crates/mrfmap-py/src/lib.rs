@@ -142,7 +142,7 @@ impl Mapper {
 #[pymethods]
 impl Mapper {
     #[new]
-    #[pyo3(signature = (resolution, fx, fy, cx, cy, width, height, engine="logodds", noise=None, max_range=None, particles=101, iterations=3, prior=0.1, messages="sum"))]
+    #[pyo3(signature = (resolution, fx, fy, cx, cy, width, height, engine="logodds", noise=None, max_range=None, particles=101, iterations=mrfmap::inference::DEFAULT_MAX_SWEEPS, prior=0.1))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         resolution: f64,
@@ -158,7 +158,6 @@ impl Mapper {
         particles: usize,
         iterations: usize,
         prior: f64,
-        messages: &str,
     ) -> PyResult<Self> {
         let kind: EngineKind = engine.parse().map_err(py_err)?;
         let camera = Camera::new(fx, fy, cx, cy, width, height, 1000.0).map_err(py_err)?;
@@ -171,8 +170,7 @@ impl Mapper {
             None => None,
         };
         let limits = RayLimits { max_range, bounds: None };
-        let messages = messages.parse().map_err(py_err)?;
-        let mrf = MrfParams { prior, iterations, messages, ..MrfParams::default() };
+        let mrf = MrfParams { prior, iterations, ..MrfParams::default() };
         let inner = if kind == EngineKind::Mrf {
             Inner::Mrf(Box::new(MrfEngine::new(resolution, limits, mrf).map_err(py_err)?))
         } else {
@@ -356,18 +354,25 @@ impl Mapper {
         self.mrf_only("set_pose", |e| e.set_pose(KeyframeId(id), pose))
     }
 
-    /// MRF: runs belief-propagation iterations; the online engines have nothing to run.
-    #[pyo3(signature = (iterations=3))]
-    fn run(&self, py: Python<'_>, iterations: usize) {
+    /// MRF: belief propagation, by the default schedule (until converged) or `iterations`
+    /// full sweeps; the online engines have nothing to run.
+    #[pyo3(signature = (iterations=None))]
+    fn run(&self, py: Python<'_>, iterations: Option<usize>) -> PyResult<()> {
         py.detach(|| {
             if let Inner::Mrf(e) = &mut *self.lock() {
-                e.run(iterations);
+                match iterations {
+                    Some(n) => {
+                        e.run(n);
+                    }
+                    None => e.finish().map_err(py_err)?,
+                }
             }
+            Ok(())
         })
     }
 
     /// MRF: belief propagation until no marginal moves by more than `tolerance`, re-tracing
-    /// only keyframes whose inputs changed; returns (sweeps, keyframe updates, rays, converged).
+    /// only the tiles whose inputs changed; returns (sweeps, keyframe updates, rays, converged).
     #[pyo3(signature = (tolerance=mrfmap::inference::DEFAULT_TOLERANCE, max_sweeps=100))]
     fn run_until(&self, py: Python<'_>, tolerance: f64, max_sweeps: usize) -> PyResult<(usize, usize, usize, bool)> {
         if !(tolerance > 0.0 && tolerance < 1.0) {

@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Result;
-use mrfmap::inference::{CrmParams, EngineConfig, EngineKind, LogOddsParams, MrfEngine, MrfParams, new_engine};
+use mrfmap::inference::{CrmParams, Engine, EngineConfig, EngineKind, LogOddsParams, MrfEngine, MrfParams, new_engine};
 
 use super::build::{BagArgs, LaserOptions, Reading, marking};
 use mrfmap::frames::Frame;
@@ -26,8 +26,8 @@ pub struct Args {
     /// Builds per resolution; the fastest is reported (least disturbed by other load).
     #[arg(long, default_value_t = 3)]
     repeat: u32,
-    /// MRF only: also time adding the last frame as a keyframe to a map of all the others
-    /// (already inferred) and running 3 iterations over all keyframes.
+    /// MRF only: also time adding the last frame as a keyframe to an inferred map of all the
+    /// others and inferring again with the default schedule (median of --repeat runs).
     #[arg(long)]
     incremental: bool,
     /// CRM only: particles per voxel.
@@ -42,23 +42,27 @@ pub struct Args {
     bag: BagArgs,
 }
 
-/// Time to add the last frame to an inferred MRF of the others and run 3 iterations.
+/// Time to add the last frame to an inferred MRF of the others and infer again with the
+/// engine's default schedule ([`Engine::finish`]): the median of `repeat` runs. Between runs
+/// the keyframe is removed and the map re-inferred (not timed).
 fn incremental_mrf(frames: &[Frame], resolution: f64, repeat: u32) -> Result<f64> {
     let (last, rest) = frames.split_last().ok_or_else(|| anyhow::anyhow!("no frames"))?;
     let mut engine = MrfEngine::new(resolution, Default::default(), MrfParams::default())?;
     for f in rest {
         engine.add_keyframe(f.clone())?;
     }
-    engine.run(3);
-    let mut best = f64::INFINITY;
+    engine.finish()?;
+    let mut times = Vec::new();
     for _ in 0..repeat.max(1) {
         let t = Instant::now();
         let id = engine.add_keyframe(last.clone())?;
-        engine.run(3);
-        best = best.min(t.elapsed().as_secs_f64());
+        engine.finish()?;
+        times.push(t.elapsed().as_secs_f64());
         engine.remove_keyframe(id)?;
+        engine.finish()?;
     }
-    Ok(best)
+    times.sort_by(f64::total_cmp);
+    Ok(times[times.len() / 2])
 }
 
 pub fn run(a: Args) -> Result<()> {

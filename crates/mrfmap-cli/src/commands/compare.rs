@@ -72,9 +72,6 @@ fn extra_flags(a: &Args) -> String {
     if a.metric.metric == PeakRule::Exit {
         f.push_str(" --metric reference");
     }
-    if a.options.messages != "sum" {
-        let _ = write!(f, " --messages {}", a.options.messages);
-    }
     f
 }
 

@@ -28,3 +28,12 @@ pub fn positive(s: &str) -> Result<f64, String> {
         Err(e) => Err(e.to_string()),
     }
 }
+
+/// clap parser for a finite number that is 0 or more.
+pub fn non_negative(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v >= 0.0 && v.is_finite() => Ok(v),
+        Ok(v) => Err(format!("must be 0 or a positive number, got {v}")),
+        Err(e) => Err(e.to_string()),
+    }
+}

@@ -12,7 +12,9 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use mrfmap::frames::{Camera, DepthImage, Frame};
-use mrfmap::inference::{CrmParams, EngineConfig, EngineKind, MrfEngine, MrfParams, new_engine};
+use mrfmap::inference::{
+    CrmParams, DEFAULT_TOLERANCE, Engine, EngineConfig, EngineKind, MrfEngine, MrfParams, new_engine,
+};
 use mrfmap::outputs::pictures::write_text;
 use mrfmap::outputs::{Canvas, PlotArea, Rgb};
 use mrfmap::source::{Dataset, Scene};
@@ -203,11 +205,12 @@ pub fn run(a: Args) -> Result<()> {
     let room: Vec<Frame> = (0..=n_max).map(|k| render(k, 0.0)).collect();
     let _ = writeln!(
         report,
-        "\n## MRF vs number of keyframes (demo room, 0.05 m)\n\nFull build: add N keyframes, 3 iterations. \
-         Add one, overlapping: add a view of the same room to N inferred keyframes and run 3 \
-         iterations (every keyframe overlaps it). Add one, apart: the N keyframes are copies \
-         100 m apart from each other (none overlaps the new one except the first).\n\n\
-         | N | full build s | add one (overlapping) s | add one (apart) s | keyframes re-traced (apart) |\n|---|---|---|---|---|"
+        "\n## MRF vs number of keyframes (demo room, 0.05 m)\n\nAll with the default schedule \
+         (change-driven, until converged). Full build: add N keyframes and infer. Add one, \
+         overlapping: add a view of the same room to N inferred keyframes and infer again \
+         (every keyframe overlaps it). Add one, apart: the N keyframes are copies 100 m apart \
+         from each other (none overlaps the new one except the first).\n\n\
+         | N | full build s | add one (overlapping) s | add one (apart) s | tiles traced (overlapping) | tiles traced (apart) |\n|---|---|---|---|---|---|"
     );
     let (mut full, mut add_near, mut add_far) = (Vec::new(), Vec::new(), Vec::new());
     for &n in &a.keyframes {
@@ -218,25 +221,22 @@ pub fn run(a: Args) -> Result<()> {
             for f in frames {
                 e.add_keyframe(f.clone())?;
             }
-            e.run(3);
+            e.finish()?;
             Ok((e, t.elapsed().as_secs_f64()))
         };
+        let add = |e: &mut MrfEngine| -> Result<(f64, usize)> {
+            let t = Instant::now();
+            e.add_keyframe(room[n].clone())?;
+            let r = e.run_until(params.tolerance.unwrap_or(DEFAULT_TOLERANCE), params.iterations);
+            Ok((t.elapsed().as_secs_f64(), r.tiles))
+        };
         let (mut near, full_secs) = build(&room[..n])?;
-        let t = Instant::now();
-        near.add_keyframe(room[n].clone())?;
-        near.run(3);
-        let near_secs = t.elapsed().as_secs_f64();
+        let (near_secs, near_tiles) = add(&mut near)?;
         let apart: Vec<Frame> = (0..n).map(|k| render(k, 100.0 * k as f64)).collect();
         let (mut far, _) = build(&apart)?;
-        let t = Instant::now();
-        far.add_keyframe(room[n].clone())?;
-        far.run(3);
-        let far_secs = t.elapsed().as_secs_f64();
-        let _ = writeln!(
-            report,
-            "| {n} | {full_secs:.2} | {near_secs:.2} | {far_secs:.2} | {} |",
-            far.last_run_keyframes()
-        );
+        let (far_secs, far_tiles) = add(&mut far)?;
+        let _ =
+            writeln!(report, "| {n} | {full_secs:.2} | {near_secs:.2} | {far_secs:.2} | {near_tiles} | {far_tiles} |");
         eprintln!("mrf {n} keyframes: build {full_secs:.2} s, add near {near_secs:.2} s, add apart {far_secs:.2} s");
         full.push((n as f64, full_secs));
         add_near.push((n as f64, near_secs));

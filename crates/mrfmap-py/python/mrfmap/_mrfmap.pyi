@@ -16,9 +16,8 @@ class Mapper:
     ``noise.toml`` forward sensor model (bias and std polynomials, per pixel patch when
     given); without one the MRF and CRM use ``0.002 + 0.0035 z^2`` m std, no bias.
     ``max_range`` cuts longer readings, which then only clear space. MRF: ``prior`` per
-    voxel and ``messages``: ``"sum"`` (every ray is a factor)
-    or ``"average"`` (one length-weighted average message per keyframe and voxel, the paper's
-    text; under-confident). The MRF's map leaves out voxels no ray has reached.
+    voxel, ``iterations`` the cap on sweeps of ``run()``; every ray is a factor (module docs
+    of ``mrfmap::inference::mrf``). The MRF's map leaves out voxels no ray has reached.
     Raises ``ValueError`` for bad parameters and ``OSError`` for unreadable files.
     """
 
@@ -35,9 +34,8 @@ class Mapper:
         noise: Optional[os.PathLike[str] | str] = None,
         max_range: Optional[float] = None,
         particles: int = 101,
-        iterations: int = 3,
+        iterations: int = 10,
         prior: float = 0.1,
-        messages: str = "sum",
     ) -> None: ...
     def add_frame(
         self,
@@ -83,12 +81,14 @@ class Mapper:
         """MRF only: removes a keyframe; after ``run`` the map is as if it was never added."""
     def set_pose(self, id: int, pose: npt.NDArray[np.float64]) -> None:
         """MRF only: moves a keyframe to a corrected pose (after a loop closure)."""
-    def run(self, iterations: int = 3) -> None:
-        """MRF: belief-propagation iterations over all keyframes. Other engines: nothing."""
+    def run(self, iterations: Optional[int] = None) -> None:
+        """MRF: belief propagation. By default until converged (``run_until`` with tolerance
+        1e-3, at most the constructor's ``iterations`` sweeps); with ``iterations``, exactly
+        that many full sweeps over every keyframe. Other engines: nothing."""
     def run_until(self, tolerance: float = 1e-3, max_sweeps: int = 100) -> Tuple[int, int, int, bool]:
-        """MRF only: belief propagation until no marginal moves by more than ``tolerance`` in
-        one keyframe update, re-tracing only the keyframes whose voxels changed since their last
-        trace. Returns ``(sweeps, keyframe_updates, rays_traced, converged)``."""
+        """MRF only: change-driven belief propagation until no marginal moves by more than
+        ``tolerance``, re-tracing only the 16x16-pixel tiles of keyframes whose voxels moved
+        since they last traced. Returns ``(sweeps, keyframe_updates, rays_traced, converged)``."""
     def map(self) -> Map:
         """The current map (a snapshot)."""
     def query(

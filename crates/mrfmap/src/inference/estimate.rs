@@ -8,9 +8,12 @@
 //! volume-bound, long trajectories ray-bound. Bytes per brick were measured on coffin-world
 //! and the demo room (BENCHMARKS.md) and include each engine's scratch memory: log-odds
 //! 6 KiB, CRM 1 KiB + 512 voxels x 4 (particles + 1) bytes. The MRF (band allocation)
-//! allocates around depth points only: about 2.5 KiB for each of three bricks per brick
-//! holding end points, once for the marginals and once per keyframe. Accurate to a factor of about 2: enough to refuse a
-//! build that cannot fit, not to size a machine.
+//! allocates around depth points only, three bricks per brick holding end points: 5 KiB
+//! each for the marginals (and the values the change log compares with), and per keyframe
+//! 4 KiB each for its tiles' messages (16 bytes per voxel a tile's rays reach and 16 per
+//! run of them in one brick; measured on the demo room: 3.5 MiB per keyframe for 299
+//! end-point bricks at 0.05 m). Accurate to a factor of about 2: enough to refuse a build
+//! that cannot fit, not to size a machine.
 
 use super::{EngineConfig, EngineKind};
 use crate::map::BRICK_EDGE;
@@ -94,12 +97,12 @@ pub fn estimate_memory(config: &EngineConfig, extent: &Extent, readings: usize) 
         EngineKind::Crm => 1024.0 + 512.0 * 4.0 * (config.crm.particles as f64 + 1.0),
         EngineKind::Mrf => {
             // Band allocation: bricks around depth points (and their neighbours), for the
-            // marginals and for each keyframe's messages.
+            // marginals and for each keyframe's tiles.
             let (all, per) = extent.surface_bricks;
             if per > 0.0 && config.mrf.allocation == super::Allocation::Band {
-                return BAND * 2560.0 * (all + readings as f64 * per);
+                return BAND * (5120.0 * all + 4096.0 * readings as f64 * per);
             }
-            6144.0 * (1.0 + readings as f64 / 2.0)
+            6144.0 * (1.0 + readings as f64)
         }
     };
     extent.bricks(config.resolution) * per_brick

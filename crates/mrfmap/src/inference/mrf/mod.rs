@@ -23,7 +23,14 @@
 //!   only the tiles for which some voxel's marginal moved by more than a tolerance since
 //!   they saw it (or which new bricks may lie on), until no tile is left. Both trace one
 //!   keyframe's tiles against the same `S`, then apply them in tile order, damped:
-//!   [`MrfParams::damping`] of a tile's old message (log-odds) stays.
+//!   [`MrfParams::damping`] of a tile's old message (log-odds) stays, and a message whose
+//!   change keeps reversing direction is damped more (loopy belief propagation can cycle
+//!   where voxels compete for one surface). Which tiles a change may affect is found by
+//!   projecting the bricks it touched into each keyframe's image. The default
+//!   ([`MrfParams::default`]) is change-driven, to a tolerance of [`DEFAULT_TOLERANCE`] and
+//!   at most [`DEFAULT_MAX_SWEEPS`] sweeps.
+//! - [`MrfParams::ray_spacing`] optionally traces one ray per block of pixels where pixels
+//!   are much smaller than voxels.
 //! - Keyframes can be added, removed and re-posed. Removal subtracts the keyframe's messages
 //!   exactly (it does not reset the others' and `S` the way the reference code does, which
 //!   would double-count). A new brick marks stale the tiles of other keyframes whose rays may
@@ -141,10 +148,16 @@ pub struct KeyframeId(pub u64);
 /// Pixels per side of a tile, the unit of bookkeeping and re-tracing (see the module docs).
 pub const TILE: u32 = 16;
 
-/// One voxel that a tile's rays reach.
-#[derive(Clone, Copy, Debug)]
+/// One voxel that a tile's rays reach (16 bytes; its brick is the tile's run's).
+#[derive(Clone, Copy, Debug, Default)]
 struct Entry {
-    key: VoxelKey,
+    /// The voxel's slot in its brick.
+    slot: u16,
+    /// Extra damping: the share of a change that goes in is halved this many times.
+    level: u8,
+    /// Bits 0-1: traces in a row whose change did not reverse; bit 2: the last change was
+    /// positive; bit 3: it was negative.
+    flags: u8,
     /// Summed length of the tile's rays in the voxel (m).
     length: f32,
     /// The tile's message to the voxel (log-odds): its rays' messages, each weighted by its
@@ -152,12 +165,32 @@ struct Entry {
     message: f32,
     /// The voxel's `S` that the tile's rays saw when it last traced.
     seen: f32,
-    /// The message's last change (log-odds), to see it reverse.
-    step: f32,
-    /// Extra damping: the share of a change that goes in is halved this many times.
-    level: u8,
-    /// Traces in a row whose change did not reverse.
-    calm: u8,
+}
+
+impl Entry {
+    fn calm(&self) -> u8 {
+        self.flags & 3
+    }
+
+    /// The sign of the message's last change (0 for none).
+    fn step_sign(&self) -> f64 {
+        match self.flags >> 2 {
+            1 => 1.0,
+            2 => -1.0,
+            _ => 0.0,
+        }
+    }
+
+    fn set_flags(&mut self, calm: u8, step: f64) {
+        let sign = if step > 0.0 {
+            1
+        } else if step < 0.0 {
+            2
+        } else {
+            0
+        };
+        self.flags = calm.min(3) | sign << 2;
+    }
 }
 
 #[derive(Clone, Debug, Default)]
@@ -174,6 +207,46 @@ struct Tile {
     suspect: bool,
     /// The largest camera z its rays reach (m); new bricks beyond it cannot affect it.
     z_max: f32,
+}
+
+impl Tile {
+    /// The entries of run `n` (brick `runs[n].0`).
+    fn run(&self, n: usize) -> &[Entry] {
+        let end = self.runs.get(n + 1).map_or(self.entries.len(), |r| r.1 as usize);
+        &self.entries[self.runs[n].1 as usize..end]
+    }
+
+    /// Every entry with its voxel.
+    fn iter(&self) -> impl Iterator<Item = (VoxelKey, &Entry)> + '_ {
+        (0..self.runs.len())
+            .flat_map(move |n| self.run(n).iter().map(move |e| (self.runs[n].0.voxel(e.slot as usize), e)))
+    }
+
+    /// A tile of `entries` (voxel and entry, sorted by brick and slot).
+    fn from_sorted(entries: Vec<(VoxelKey, Entry)>, traced_at: u64, z_max: f32) -> Tile {
+        let mut runs: Vec<(BrickKey, u32)> = Vec::new();
+        for (j, (key, _)) in entries.iter().enumerate() {
+            if runs.last().is_none_or(|&(b, _)| b != key.brick()) {
+                runs.push((key.brick(), j as u32));
+            }
+        }
+        runs.shrink_to_fit();
+        // Not `collect`: it would keep the larger allocation of `entries` (in-place collect).
+        let mut compact = Vec::with_capacity(entries.len());
+        compact.extend(entries.into_iter().map(|(_, e)| e));
+        Tile { entries: compact, runs, traced_at, z_max, ..Tile::default() }
+    }
+
+    /// Drops the entries in bricks `freed`; true if there were any.
+    fn drop_bricks(&mut self, freed: &FxHashSet<BrickKey>) -> bool {
+        if !self.runs.iter().any(|(b, _)| freed.contains(b)) {
+            return false;
+        }
+        let kept: Vec<(VoxelKey, Entry)> =
+            self.iter().filter(|(k, _)| !freed.contains(&k.brick())).map(|(k, e)| (k, *e)).collect();
+        *self = Tile { stale: true, ..Tile::from_sorted(kept, self.traced_at, self.z_max) };
+        true
+    }
 }
 
 struct Keyframe {
@@ -350,7 +423,7 @@ impl RunReport {
 /// One tile's trace, before it is applied.
 struct Traced {
     tile: usize,
-    entries: Vec<Entry>,
+    entries: Vec<(VoxelKey, Entry)>,
     /// `S` changes, sorted like the entries: the new messages minus the old ones.
     deltas: Vec<(VoxelKey, f32)>,
     z_max: f32,
@@ -588,8 +661,8 @@ impl MrfEngine {
 
     /// Bytes held by the keyframes' tiles (their per-voxel bookkeeping).
     pub fn tile_bytes(&self) -> usize {
-        let per = std::mem::size_of::<Entry>();
-        self.keyframes.iter().flat_map(|k| &k.tiles).map(|t| t.entries.capacity() * per).sum()
+        let (per, run) = (std::mem::size_of::<Entry>(), std::mem::size_of::<(BrickKey, u32)>());
+        self.keyframes.iter().flat_map(|k| &k.tiles).map(|t| t.entries.capacity() * per + t.runs.capacity() * run).sum()
     }
 
     fn index_of(&self, id: KeyframeId) -> Result<usize> {
@@ -602,7 +675,7 @@ impl MrfEngine {
         self.epoch += 1;
         let tiles = std::mem::take(&mut self.keyframes[i].tiles);
         for tile in &tiles {
-            let out: Vec<(VoxelKey, f32)> = tile.entries.iter().map(|e| (e.key, -e.message)).collect();
+            let out: Vec<(VoxelKey, f32)> = tile.iter().map(|(k, e)| (k, -e.message)).collect();
             self.apply(&out);
         }
         self.keyframes[i].tiles = vec![Tile { stale: true, ..Tile::default() }; tiles.len()];
@@ -707,11 +780,7 @@ impl MrfEngine {
         self.logged.remove_bricks(&list);
         self.stamps.retain(|b, _| !freed.contains(b));
         self.keyframes.par_iter_mut().flat_map(|k| &mut k.tiles).for_each(|tile| {
-            let before = tile.entries.len();
-            tile.entries.retain(|e| !freed.contains(&e.key.brick()));
-            if tile.entries.len() != before {
-                tile.stale = true;
-            }
+            tile.drop_bricks(&freed);
         });
     }
 
@@ -819,15 +888,14 @@ impl MrfEngine {
         if tile.stale {
             return true;
         }
-        for (n, &(bk, start)) in tile.runs.iter().enumerate() {
+        for (n, &(bk, _)) in tile.runs.iter().enumerate() {
             // Only bricks some update changed since the tile's trace are read.
             if self.stamps.get(&bk).is_none_or(|&e| e < tile.traced_at) {
                 continue;
             }
             let Some(brick) = self.sums.brick(bk) else { return true };
-            let end = tile.runs.get(n + 1).map_or(tile.entries.len(), |r| r.1 as usize);
-            for e in &tile.entries[start as usize..end] {
-                let Some(&s) = brick.get(e.key.slot()) else { return true };
+            for e in tile.run(n) {
+                let Some(&s) = brick.get(e.slot as usize) else { return true };
                 // |d sigmoid| <= |dS| / 4: the exponentials only for changes that may matter.
                 if (s - e.seen).abs() as f64 > 4.0 * tolerance
                     && (sigmoid(s as f64) - sigmoid(e.seen as f64)).abs() > tolerance
@@ -861,14 +929,7 @@ impl MrfEngine {
         for tr in pending {
             report.rays += tr.rays;
             self.apply(&tr.deltas);
-            let mut runs = Vec::new();
-            for (j, e) in tr.entries.iter().enumerate() {
-                if runs.last().is_none_or(|&(b, _)| b != e.key.brick()) {
-                    runs.push((e.key.brick(), j as u32));
-                }
-            }
-            let tile = &mut self.keyframes[i].tiles[tr.tile];
-            *tile = Tile { entries: tr.entries, runs, traced_at: self.epoch, z_max: tr.z_max, ..Tile::default() };
+            self.keyframes[i].tiles[tr.tile] = Tile::from_sorted(tr.entries, self.epoch, tr.z_max);
         }
         report
     }
@@ -881,8 +942,8 @@ impl MrfEngine {
         let inv_r = 1.0 / r;
         // The tile's voxels: old ones first (their message per metre is the rays' own share).
         scratch.clear();
-        for e in &tile.entries {
-            scratch.voxel(e.key, Some(*e));
+        for (key, e) in tile.iter() {
+            scratch.voxel(key, Some(*e));
         }
         let (cols, rows) = kf.tile_pixels(t);
         let (mut z_max, mut traced) = (0.0f64, 0usize);
@@ -968,36 +1029,36 @@ impl MrfEngine {
         for voxel in &scratch.voxels {
             let old = voxel.old.map_or(0.0, |e| e.message);
             if voxel.length > 0.0 {
-                let (message, step, level, calm) = match voxel.old {
+                let mut entry = Entry {
+                    slot: voxel.key.slot() as u16,
+                    length: voxel.length as f32,
+                    seen: voxel.seen,
+                    ..Entry::default()
+                };
+                match voxel.old {
                     Some(e) => {
                         let change = voxel.sum - e.message as f64;
-                        let (level, calm) = if change * (e.step as f64) < 0.0 {
+                        let (level, calm) = if change * e.step_sign() < 0.0 {
                             ((e.level + 1).min(MAX_DAMPING_LEVEL), 0)
-                        } else if e.calm + 1 >= CALM_TRACES {
+                        } else if e.calm() + 1 >= CALM_TRACES {
                             (e.level.saturating_sub(1), 0)
                         } else {
-                            (e.level, e.calm + 1)
+                            (e.level, e.calm() + 1)
                         };
                         let step = (1.0 - keep) * change / (1u32 << level) as f64;
-                        ((e.message as f64 + step) as f32, step as f32, level, calm)
+                        entry.message = (e.message as f64 + step) as f32;
+                        entry.level = level;
+                        entry.set_flags(calm, step);
                     }
-                    None => (voxel.sum as f32, 0.0, 0, 0),
-                };
-                entries.push(Entry {
-                    key: voxel.key,
-                    length: voxel.length as f32,
-                    message,
-                    seen: voxel.seen,
-                    step,
-                    level,
-                    calm,
-                });
-                deltas.push((voxel.key, message - old));
+                    None => entry.message = voxel.sum as f32,
+                }
+                entries.push((voxel.key, entry));
+                deltas.push((voxel.key, entry.message - old));
             } else if old != 0.0 {
                 deltas.push((voxel.key, -old));
             }
         }
-        entries.sort_unstable_by_key(|e| entry_order(&e.key));
+        entries.sort_unstable_by_key(|e| entry_order(&e.0));
         deltas.sort_unstable_by_key(|d| entry_order(&d.0));
         Traced { tile: t, entries, deltas, z_max: z_max as f32, rays: traced }
     }

@@ -68,7 +68,7 @@ pub trait Engine: Send + Sync {
         Ok(())
     }
     /// [`Engine::finish`], calling `progress(done, total)` as its work advances (the MRF:
-    /// after each keyframe update of each iteration).
+    /// after each sweep of its change-driven schedule, or each keyframe of a fixed sweep).
     fn finish_with_progress(&mut self, progress: &mut dyn FnMut(usize, usize)) -> Result<()> {
         let _ = progress;
         self.finish()

@@ -522,6 +522,7 @@ fn mrf_reference_metric_and_bad_values_and_plain_errors() {
     build_fails(&data, &["--engine", "mrf", "--iterations", "0"], &["iterations"]);
     build_fails(&data, &["--engine", "mrf", "--tolerance", "0"], &["tolerance"]);
     build_fails(&data, &["--engine", "mrf", "--damping", "1"], &["damping", "[0, 1)"]);
+    build_fails(&data, &["--engine", "mrf", "--ray-spacing=-1"], &["ray-spacing", "0 or a positive number"]);
     let until = dir.join("until.mrfmap");
     let o = run(&[
         "build",
@@ -826,24 +827,27 @@ fn ros2_bags_build_the_same_map_as_the_dataset() {
     // Poses from /tf, from a /tf + /tf_static chain, and from a pose topic: the same map as
     // the TUM layout of the same data.
     let m = dir.join("bag.mrfmap");
-    let o = build(&direct, &m, &[depth[0], depth[1], "--fixed-frame", "map"]);
-    assert!(o.status.success(), "{}", stderr(&o));
-    same_maps(&tum, &m);
+    // Builds from `bag` with the depth topic and `poses`, checks the map is the TUM layout's,
+    // and returns the log.
+    let same_as_tum = |bag: &Path, poses: &[&str]| {
+        let mut args = depth.to_vec();
+        args.extend_from_slice(poses);
+        let o = build(bag, &m, &args);
+        assert!(o.status.success(), "{}", stderr(&o));
+        same_maps(&tum, &m);
+        stderr(&o)
+    };
+    same_as_tum(&direct, &["--fixed-frame", "map"]);
     let chain = dir.join("chain");
     make_bag(&data, &chain, &[]);
-    assert!(build(&chain, &m, &[depth[0], depth[1], "--fixed-frame", "map"]).status.success());
-    same_maps(&tum, &m);
+    same_as_tum(&chain, &["--fixed-frame", "map"]);
     let file = chain.join("chain.mcap");
     for topic in ["/camera/pose", "/camera/odom", "/camera/transform"] {
-        let o = build(&file, &m, &[depth[0], depth[1], "--pose-topic", topic]);
-        assert!(o.status.success(), "{topic}: {}", stderr(&o));
-        same_maps(&tum, &m);
+        same_as_tum(&file, &["--pose-topic", topic]);
     }
     let sqlite = dir.join("sqlite");
     make_bag(&data, &sqlite, &["--db3"]);
-    let o = build(&sqlite, &m, &[depth[0], depth[1], "--fixed-frame", "map"]);
-    assert!(o.status.success(), "{}", stderr(&o));
-    same_maps(&tum, &m);
+    same_as_tum(&sqlite, &["--fixed-frame", "map"]);
     // `loo`, `eval` and `bench` take the bag too (scored against its own depth images).
     let o = run(&["loo", s(&direct), depth[0], depth[1], "--fixed-frame", "map", "--resolution", "0.05", "--json"]);
     let v: serde_json::Value = serde_json::from_str(&stdout(&o)).unwrap_or_else(|_| panic!("{}", stderr(&o)));
@@ -866,19 +870,12 @@ fn ros2_bags_build_the_same_map_as_the_dataset() {
     // Images logged out of stamp order: a warning naming the topic, the same map.
     let reversed = dir.join("reversed");
     make_bag(&data, &reversed, &["--direct", "--reverse"]);
-    let o = build(&reversed, &m, &[depth[0], depth[1], "--fixed-frame", "map"]);
-    assert!(
-        o.status.success() && stderr(&o).contains("/camera/depth/image_rect_raw: image 2 is stamped before"),
-        "{}",
-        stderr(&o)
-    );
-    same_maps(&tum, &m);
+    let log = same_as_tum(&reversed, &["--fixed-frame", "map"]);
+    assert!(log.contains("/camera/depth/image_rect_raw: image 2 is stamped before"), "{log}");
     // A ROS 1 bag of the same data (through the rosbag crate and ROS 1 serialisation).
     let ros1 = dir.join("ros1.bag");
     make_bag(&data, &ros1, &["--ros1"]);
-    let o = build(&ros1, &m, &[depth[0], depth[1], "--fixed-frame", "map"]);
-    assert!(o.status.success(), "{}", stderr(&o));
-    same_maps(&tum, &m);
+    same_as_tum(&ros1, &["--fixed-frame", "map"]);
     // compressedDepth images (16UC1 millimetres), PNG or RVL: the same map either way, and
     // within the millimetre rounding of the dataset's.
     let (png, rvl) = (dir.join("png"), dir.join("rvl"));

@@ -528,7 +528,6 @@ impl MrfEngine {
         self.withdraw_messages(i);
         let old = std::mem::take(&mut self.keyframes[i].bricks);
         self.keyframes[i].frame = frame;
-        self.keyframes[i].reset_tiles();
         let bricks = self.allocation_of(&self.keyframes[i]);
         let new = self.reference_bricks(&bricks);
         self.mark_tiles_reaching(&new);
@@ -678,7 +677,7 @@ impl MrfEngine {
             let out: Vec<(VoxelKey, f32)> = tile.iter().map(|(k, e)| (k, -e.message)).collect();
             self.apply(&out);
         }
-        self.keyframes[i].tiles = vec![Tile { stale: true, ..Tile::default() }; tiles.len()];
+        self.keyframes[i].reset_tiles();
     }
 
     /// Adds `(voxel, change)` pairs, sorted by brick, to the sums (changes to voxels no longer
@@ -952,23 +951,14 @@ impl MrfEngine {
         let stride = self.tile_stride(kf, &cols, &rows);
         for v0 in rows.clone().step_by(stride as usize) {
             for u0 in cols.clone().step_by(stride as usize) {
-                // One ray stands for the valid pixels of its stride x stride block.
-                let block = |f: &mut dyn FnMut(u32, u32)| {
-                    for v in v0..(v0 + stride).min(rows.end) {
-                        for u in u0..(u0 + stride).min(cols.end) {
-                            f(u, v);
-                        }
-                    }
-                };
-                let (mut first, mut weight) = (None, 0u32);
-                block(&mut |u, v| {
-                    if depth.get(u, v).is_some() {
-                        first = first.or(Some((u, v)));
-                        weight += 1;
-                    }
-                });
-                let Some(ray) = first.and_then(|(u, v)| rays.ray(u, v)) else { continue };
-                let weight = weight as f64;
+                // One ray, of the first valid pixel, stands for the valid pixels of its
+                // stride x stride block.
+                let mut valid = (v0..(v0 + stride).min(rows.end))
+                    .flat_map(|v| (u0..(u0 + stride).min(cols.end)).map(move |u| (u, v)))
+                    .filter(|&(u, v)| depth.get(u, v).is_some());
+                let Some((u, v)) = valid.next() else { continue };
+                let weight = 1.0 + valid.count() as f64;
+                let Some(ray) = rays.ray(u, v) else { continue };
                 let Some(seg) = self.limits.forward_model_segment(&ray, &kf.noise) else { continue };
                 traced += 1;
                 z_max = z_max.max(seg.end * ray.cz);
@@ -1261,6 +1251,19 @@ mod tests {
     /// against every brick (not only those the change log projects onto it) finds none to
     /// re-trace: the log and the projection missed nothing, through adds, removals and
     /// re-poses.
+    #[test]
+    fn bad_parameters_are_refused() {
+        for (params, word) in [
+            (MrfParams { ray_spacing: -1.0, ..MrfParams::default() }, "ray spacing"),
+            (MrfParams { ray_spacing: f64::NAN, ..MrfParams::default() }, "ray spacing"),
+            (MrfParams { tolerance: Some(0.0), ..MrfParams::default() }, "tolerance"),
+            (MrfParams { damping: 1.0, ..MrfParams::default() }, "damping"),
+        ] {
+            let err = MrfEngine::new(0.05, Default::default(), params).err().expect("refused");
+            assert!(err.to_string().contains(word), "{err}");
+        }
+    }
+
     #[test]
     fn change_log_misses_no_dirty_tile() {
         let scene = Scene::from_toml(

@@ -60,6 +60,11 @@ pub struct MapOptions {
     /// and costs accuracy (RESULTS.md).
     #[arg(long, default_value_t = 0.0, value_parser = super::non_negative)]
     pub ray_spacing: f64,
+    /// MRF: voxels whose log-odds moved less than this from the prior are unknown (left out
+    /// of the map). Default ln 3: a Bayes factor below 3 is "not worth more than a bare
+    /// mention" (Kass and Raftery); 0 keeps every voxel a ray reached.
+    #[arg(long, default_value_t = mrfmap::inference::DEFAULT_MIN_EVIDENCE, value_parser = super::non_negative)]
+    pub min_evidence: f64,
     /// CRM: particles per voxel pdf (memory per voxel is 4 * (particles + 1) bytes).
     #[arg(long, default_value_t = 101, value_parser = clap::value_parser!(u16).range(2..))]
     pub particles: u16,
@@ -106,6 +111,7 @@ impl MapOptions {
                 damping: self.damping,
                 ray_spacing: self.ray_spacing,
                 tolerance,
+                min_evidence: self.min_evidence,
             },
             crm: CrmParams { particles: self.particles as usize },
         })

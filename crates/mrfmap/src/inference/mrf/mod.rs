@@ -43,9 +43,9 @@
 //! brick a ray crosses from the camera on. Rays are truncated 3 std beyond the measurement
 //! (bias removed); the chance that the surface lies beyond that point is the ray's "beyond"
 //! term: the forward model averaged over one more voxel past the truncation. An allocated
-//! voxel whose belief no ray moved from the prior (behind surfaces, outside every view) is
-//! unknown: [`Engine::map`] leaves it out, so that a planner does not read a wall's unseen
-//! inside as "probably free" (`UNOBSERVED`).
+//! voxel whose belief the rays moved by less than [`MrfParams::min_evidence`] from the prior
+//! (behind surfaces, outside every view) is unknown: [`Engine::map`] leaves it out, so that a
+//! planner does not read a wall's unseen inside as "probably free".
 //!
 //! Each voxel's likelihood is the forward model averaged over the voxel's extent along the
 //! ray ([`NoiseModel::likelihood_over`]), so voxels stay informative when the sensor's noise
@@ -125,7 +125,18 @@ pub struct MrfParams {
     /// [`MrfEngine::run_until`] with tolerance `t` and at most `iterations` sweeps; with
     /// `None`, `iterations` full sweeps ([`MrfEngine::run`]).
     pub tolerance: Option<f64>,
+    /// A voxel whose `S` lies within this many log-odds of the prior's is unknown:
+    /// [`Engine::map`] leaves it out. The default, `ln 3` ([`DEFAULT_MIN_EVIDENCE`]), is
+    /// where Kass and Raftery's scale of evidence (JASA 1995) ends "not worth more than a
+    /// bare mention": a Bayes factor below 3. Such voxels are mostly inside walls, just
+    /// behind surfaces: every ray occluded there sends a message a hair above 1/2, and
+    /// hundreds of them sum to a marginal of 0.1-0.3 where the truth is 1 (RESULTS.md). 0
+    /// keeps every voxel a ray reached.
+    pub min_evidence: f64,
 }
+
+/// Default of [`MrfParams::min_evidence`]: `ln 3`.
+pub const DEFAULT_MIN_EVIDENCE: f64 = 1.0986122886681098;
 
 impl Default for MrfParams {
     fn default() -> Self {
@@ -137,6 +148,7 @@ impl Default for MrfParams {
             damping: 0.3,
             ray_spacing: 0.0,
             tolerance: Some(DEFAULT_TOLERANCE),
+            min_evidence: DEFAULT_MIN_EVIDENCE,
         }
     }
 }
@@ -337,10 +349,9 @@ impl Keyframe {
 /// Messages are kept away from 0 and 1 so that their log-odds stay finite.
 const MSG_EPS: f64 = 1e-6;
 
-/// A voxel whose `S` is within this many log-odds of the prior's carries no evidence and is
-/// left out of [`Engine::map`] (unknown). Rays that reach a voxel move it by far more; rays
-/// that are occluded before it send messages of 1/2 and move it by nothing. Results hardly
-/// depend on the value (0.001 to 0.2 change the demo room's MAE by 0.006).
+/// A voxel whose `S` is within this many log-odds of the prior's was reached by no ray (or
+/// only by occluded ones, whose messages are 1/2): unknown whatever
+/// [`MrfParams::min_evidence`] says.
 const UNOBSERVED: f64 = 0.01;
 
 /// Cap on an entry's extra damping level (its changes go in at 2^-8 of the plain share).
@@ -436,10 +447,11 @@ fn entry_order(k: &VoxelKey) -> (BrickKey, usize) {
 }
 
 impl MrfEngine {
-    /// The map voxel of a marginal's log-odds sum `S`: none where no ray reached the voxel
-    /// (`S` within [`UNOBSERVED`] of the prior), so unreached space stays unknown.
+    /// The map voxel of a marginal's log-odds sum `S`: none where the evidence is too weak
+    /// (`S` within [`MrfParams::min_evidence`], and at least [`UNOBSERVED`], of the prior),
+    /// so unreached and occluded space stays unknown.
     fn map_voxel(&self, s: f32) -> Option<MapVoxel> {
-        ((s as f64 - logit(self.params.prior)).abs() > UNOBSERVED)
+        ((s as f64 - logit(self.params.prior)).abs() > self.params.min_evidence.max(UNOBSERVED))
             .then(|| MapVoxel { occupancy: sigmoid(s as f64) as f32, variance: 0.0 })
     }
 
@@ -453,6 +465,9 @@ impl MrfEngine {
         }
         if !(params.ray_spacing >= 0.0 && params.ray_spacing.is_finite()) {
             return Err(Error::Invalid(format!("MRF ray spacing must be 0 or more, got {}", params.ray_spacing)));
+        }
+        if !(params.min_evidence >= 0.0 && params.min_evidence.is_finite()) {
+            return Err(Error::Invalid(format!("MRF minimum evidence must be 0 or more, got {}", params.min_evidence)));
         }
         if !(0.0..1.0).contains(&params.damping) {
             return Err(Error::Invalid(format!("MRF damping must be in [0, 1), got {}", params.damping)));
@@ -1231,6 +1246,7 @@ impl Engine for MrfEngine {
         map.params.insert("allocation".into(), format!("{:?}", p.allocation).to_lowercase());
         map.params.insert("damping".into(), p.damping.to_string());
         map.params.insert("ray_spacing".into(), p.ray_spacing.to_string());
+        map.params.insert("min_evidence".into(), p.min_evidence.to_string());
         if let Some(t) = p.tolerance {
             map.params.insert("tolerance".into(), t.to_string());
         }

@@ -207,7 +207,7 @@ impl NoiseModel {
     /// `(u, v)` when the surface lies somewhere in the true z-depth interval `[z0, z1]`,
     /// uniformly: the forward model averaged over a voxel's extent along the ray. Averaging
     /// (instead of evaluating at one point) keeps voxels informative when the noise is much
-    /// smaller than a voxel. Falls back to the point density for tiny intervals.
+    /// smaller than a voxel. One interval of [`RayLikelihood::over`], which walks a ray.
     ///
     /// ```
     /// use mrfmap::frames::{NoiseModel, Poly};
@@ -218,21 +218,15 @@ impl NoiseModel {
     /// assert!(m.likelihood_over(0, 0, 2.5, 2.6, 2.0) < 1e-100);
     /// ```
     pub fn likelihood_over(&self, u: u32, v: u32, z0: f64, z1: f64, measured: f64) -> f64 {
-        let (b, s) = self.polys(u, v);
-        let sigma = s.eval(0.5 * (z0 + z1)).max(STD_FLOOR);
-        let w0 = z0 + b.eval(z0);
-        let w1 = z1 + b.eval(z1);
-        let (a, b) = ((w0 - measured) / sigma, (w1 - measured) / sigma);
-        if a > TAIL_CUTOFF || b < -TAIL_CUTOFF {
-            // Over `cutoff` std away: zero next to any voxel near the surface.
-            return 0.0;
-        }
-        if w1 - w0 > 1e-3 * sigma {
-            normal_mass(a, b) / (w1 - w0)
-        } else {
-            let d = (measured - 0.5 * (w0 + w1)) / sigma;
-            (-0.5 * d * d).exp() / (sigma * (2.0 * std::f64::consts::PI).sqrt())
-        }
+        self.along_ray(u, v, measured).over(z0, z1)
+    }
+
+    /// The forward model of pixel `(u, v)` measuring `measured`, for the consecutive voxels
+    /// of its ray ([`RayLikelihood::over`]).
+    #[inline]
+    pub fn along_ray(&self, u: u32, v: u32, measured: f64) -> RayLikelihood<'_> {
+        let (bias, std) = self.polys(u, v);
+        RayLikelihood { bias, std, measured, last: None }
     }
 
     /// The `noise.toml` text of this model.
@@ -257,18 +251,82 @@ impl NoiseModel {
     }
 }
 
-/// Standard normal probability of `[a, b]`, computed on the side of the smaller tail so that
-/// far-tail intervals keep their relative precision. Uses [`upper_tail`]: absolute error below
-/// 1e-12, far below the 1.2e-7 relative error of the `erfc` approximation it replaced, at a fraction
-/// of its cost; it is
-/// the innermost arithmetic of the MRF and CRM forward models.
-pub fn normal_mass(a: f64, b: f64) -> f64 {
-    if a >= 0.0 {
-        (upper_tail(a) - upper_tail(b)).max(0.0)
-    } else if b <= 0.0 {
-        (upper_tail(-b) - upper_tail(-a)).max(0.0)
-    } else {
-        (1.0 - upper_tail(-a) - upper_tail(b)).max(0.0)
+/// The forward model along one ray: the likelihood of each voxel in turn, where consecutive
+/// voxels share the boundary between them. The measurement given a surface at true z-depth `z`
+/// is `Normal(w(z), std(z)^2)` with `w(z) = z + bias(z)`; the probability of measuring within
+/// the reading's resolution, for a surface uniform in `[z0, z1]`, is taken as the normal
+/// probability between the standardised boundaries `(measured - w(z)) / std(z)`, over
+/// `w(z1) - w(z0)`. So the probabilities of consecutive intervals add up exactly (they
+/// telescope), and each boundary costs one bias and std evaluation and one tail lookup,
+/// shared by the two voxels it separates: half the work of evaluating each voxel alone.
+#[derive(Clone, Debug)]
+pub struct RayLikelihood<'a> {
+    bias: &'a Poly,
+    std: &'a Poly,
+    measured: f64,
+    /// The last interval's far boundary: its z and what was computed there.
+    last: Option<(f64, Boundary)>,
+}
+
+/// One boundary of [`RayLikelihood`]: `w(z)`, `std(z)`, the standardised position and its tail.
+#[derive(Clone, Copy, Debug)]
+struct Boundary {
+    w: f64,
+    sigma: f64,
+    x: f64,
+    /// `upper_tail(|x|)`, NaN until needed.
+    tail: f64,
+}
+
+impl Boundary {
+    #[inline]
+    fn tail(&mut self) -> f64 {
+        if self.tail.is_nan() {
+            self.tail = upper_tail(self.x.abs());
+        }
+        self.tail
+    }
+}
+
+impl RayLikelihood<'_> {
+    #[inline]
+    fn boundary(&self, z: f64) -> Boundary {
+        let w = z + self.bias.eval(z);
+        let sigma = self.std.eval(z).max(STD_FLOOR);
+        Boundary { w, sigma, x: (w - self.measured) / sigma, tail: f64::NAN }
+    }
+
+    /// Likelihood density (per metre of measured z-depth) when the surface lies uniformly in
+    /// the true z-depth interval `[z0, z1]` (see [`NoiseModel::likelihood_over`]). Cheapest
+    /// when `z0` is the previous call's `z1`. Intervals more than [`TAIL_CUTOFF`] std from
+    /// the measurement give 0; tiny ones the point density at their middle.
+    #[inline]
+    pub fn over(&mut self, z0: f64, z1: f64) -> f64 {
+        let mut a = match self.last {
+            Some((z, b)) if z == z0 => b,
+            _ => self.boundary(z0),
+        };
+        let mut b = self.boundary(z1);
+        let density = if a.x > TAIL_CUTOFF || b.x < -TAIL_CUTOFF {
+            // Over `cutoff` std away: zero next to any voxel near the surface.
+            0.0
+        } else if b.w - a.w > 1e-3 * a.sigma.min(b.sigma) {
+            // P(x_a < X < x_b) from the smaller tails, so far-tail intervals keep precision.
+            let mass = if a.x >= 0.0 {
+                a.tail() - b.tail()
+            } else if b.x <= 0.0 {
+                b.tail() - a.tail()
+            } else {
+                1.0 - a.tail() - b.tail()
+            };
+            mass.max(0.0) / (b.w - a.w)
+        } else {
+            let sigma = 0.5 * (a.sigma + b.sigma);
+            let d = (self.measured - 0.5 * (a.w + b.w)) / sigma;
+            (-0.5 * d * d).exp() / (sigma * (2.0 * std::f64::consts::PI).sqrt())
+        };
+        self.last = Some((z1, b));
+        density
     }
 }
 
@@ -397,8 +455,10 @@ mod tests {
     }
 
     #[test]
-    fn normal_mass_against_numerical_integration() {
-        for (a, b) in [(-1.0, 1.0), (0.5, 2.0), (-3.0, -0.2), (4.0, 5.0), (-6.0, 6.0), (8.0, 9.0)] {
+    fn interval_probabilities_against_numerical_integration() {
+        // Unit std, no bias, measured 0: the standardised boundaries are the z-depths.
+        let m = NoiseModel::aggregate(Poly([0.0; 3]), Poly([1.0, 0.0, 0.0]));
+        for (a, b) in [(-1.0, 1.0), (0.5, 2.0), (-3.0, -0.2), (4.0, 5.0), (-6.0, 6.0), (5.5, 5.9)] {
             let n = 200_000;
             let h = (b - a) / n as f64;
             let integral: f64 = (0..n)
@@ -407,9 +467,31 @@ mod tests {
                     (-0.5 * x * x).exp() / (2.0 * std::f64::consts::PI).sqrt() * h
                 })
                 .sum();
-            let got = normal_mass(a, b);
+            let got = m.likelihood_over(0, 0, a, b, 0.0) * (b - a);
             assert!((got - integral).abs() <= 1e-9 * integral.max(1e-300) + 1e-12, "[{a}, {b}]: {got} vs {integral}");
         }
+    }
+
+    /// Walking a ray gives each voxel exactly what evaluating it alone gives, and the
+    /// probabilities of consecutive voxels add up to that of their union.
+    #[test]
+    fn walking_a_ray_shares_boundaries_exactly() {
+        let m = NoiseModel::aggregate(Poly([0.01, 0.0, -0.004]), Poly([0.002, 0.0, 0.0035]));
+        let measured = 2.5;
+        let mut walk = m.along_ray(0, 0, measured);
+        let (mut z, step) = (2.3, 0.0137);
+        let mut total = 0.0;
+        while z < 2.75 {
+            let alone = m.likelihood_over(0, 0, z, z + step, measured);
+            assert_eq!(walk.over(z, z + step), alone, "voxel at {z}");
+            let w = |z: f64| z + 0.01 - 0.004 * z * z;
+            total += alone * (w(z + step) - w(z));
+            z += step;
+        }
+        let union = m.likelihood_over(0, 0, 2.3, z, measured);
+        let (w0, w1) = (2.3 + 0.01 - 0.004 * 2.3 * 2.3, z + 0.01 - 0.004 * z * z);
+        assert!((total - union * (w1 - w0)).abs() < 1e-9, "{total} vs {}", union * (w1 - w0));
+        assert!(total > 0.999, "nearly all the mass lies within the walk: {total}");
     }
 
     #[test]

@@ -289,16 +289,14 @@ impl CrmEngine {
                     for ray in rays.row(v) {
                         let Some(seg) = self.limits.forward_model_segment(&ray, noise) else { continue };
                         let z = ray.range * ray.cz;
+                        let mut likelihood = noise.along_ray(ray.u, ray.v, z);
                         window.clear();
                         means.clear();
                         nus.clear();
                         for_each_crossing(ray.origin, ray.dir, seg.start, seg.end, r, |c| {
                             // A beam with no return could not have been stopped by any voxel.
-                            let nu = if ray.returned {
-                                noise.likelihood_over(ray.u, ray.v, c.s_in * ray.cz, c.s_out * ray.cz, z)
-                            } else {
-                                0.0
-                            };
+                            let nu =
+                                if ray.returned { likelihood.over(c.s_in * ray.cz, c.s_out * ray.cz) } else { 0.0 };
                             if nu == 0.0 && window.is_empty() {
                                 // No cause weight here or before: the factor is exactly 1 - m,
                                 // whatever this voxel's mean, so it is only counted.
@@ -323,7 +321,7 @@ impl CrmEngine {
                         });
                         let beyond = if seg.hits_surface {
                             let z_end = seg.end * ray.cz;
-                            noise.likelihood_over(ray.u, ray.v, z_end, z_end + r * ray.cz, z)
+                            likelihood.over(z_end, z_end + r * ray.cz)
                         } else {
                             1.0 // max range, no return or clipped: the light passed the whole segment
                         };

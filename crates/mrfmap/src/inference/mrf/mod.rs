@@ -160,9 +160,21 @@ pub struct KeyframeId(pub u64);
 /// Pixels per side of a tile, the unit of bookkeeping and re-tracing (see the module docs).
 pub const TILE: u32 = 16;
 
-/// One voxel that a tile's rays reach (16 bytes; its brick is the tile's run's).
+/// One voxel that a tile's rays reach (12 bytes; its brick is the tile's run's). The tiles
+/// are most of the engine's memory, so length and `seen` are kept in 16 bits each.
 #[derive(Clone, Copy, Debug, Default)]
 struct Entry {
+    /// The tile's message to the voxel (log-odds): its rays' messages, each weighted by its
+    /// length over the voxel edge, summed and damped. Kept exactly: removal subtracts it.
+    message: f32,
+    /// Summed length of the tile's rays in the voxel, in 1/[`LENGTH_STEPS`] voxel edges (a
+    /// tile's 256 rays reach at most 443 edges; saturates at 512). It only apportions the
+    /// message among the rays for their cavities.
+    length: u16,
+    /// The voxel's `S` that the tile's rays saw when it last traced, in 1/[`SEEN_STEPS`]
+    /// log-odds, saturating at +-32 (where marginals differ from 0 or 1 by 1e-14): the
+    /// rounding moves a marginal by at most 1.2e-4, a tenth of the default tolerance.
+    seen: i16,
     /// The voxel's slot in its brick.
     slot: u16,
     /// Extra damping: the share of a change that goes in is halved this many times.
@@ -170,16 +182,32 @@ struct Entry {
     /// Bits 0-1: traces in a row whose change did not reverse; bit 2: the last change was
     /// positive; bit 3: it was negative.
     flags: u8,
-    /// Summed length of the tile's rays in the voxel (m).
-    length: f32,
-    /// The tile's message to the voxel (log-odds): its rays' messages, each weighted by its
-    /// length over the voxel edge, summed and damped.
-    message: f32,
-    /// The voxel's `S` that the tile's rays saw when it last traced.
-    seen: f32,
 }
 
+/// Steps per voxel edge of [`Entry::length`].
+const LENGTH_STEPS: f64 = 128.0;
+/// Steps per unit of log-odds of [`Entry::seen`].
+const SEEN_STEPS: f32 = 1024.0;
+
 impl Entry {
+    /// The summed length in voxel edges.
+    fn edges(&self) -> f32 {
+        self.length as f32 / LENGTH_STEPS as f32
+    }
+
+    fn set_edges(&mut self, edges: f64) {
+        self.length = (edges * LENGTH_STEPS).round().min(u16::MAX as f64) as u16;
+    }
+
+    /// The `S` the tile saw.
+    fn seen(&self) -> f32 {
+        self.seen as f32 / SEEN_STEPS
+    }
+
+    fn set_seen(&mut self, s: f32) {
+        self.seen = (s * SEEN_STEPS).round().clamp(-(i16::MAX as f32), i16::MAX as f32) as i16;
+    }
+
     fn calm(&self) -> u8 {
         self.flags & 3
     }
@@ -922,8 +950,9 @@ impl MrfEngine {
             for e in tile.run(n) {
                 let Some(&s) = brick.get(e.slot as usize) else { return true };
                 // |d sigmoid| <= |dS| / 4: the exponentials only for changes that may matter.
-                if (s - e.seen).abs() as f64 > 4.0 * tolerance
-                    && (sigmoid(s as f64) - sigmoid(e.seen as f64)).abs() > tolerance
+                let seen = e.seen();
+                if (s - seen).abs() as f64 > 4.0 * tolerance
+                    && (sigmoid(s as f64) - sigmoid(seen as f64)).abs() > tolerance
                 {
                     return true;
                 }
@@ -1005,7 +1034,7 @@ impl MrfEngine {
                             voxel.seen = s;
                             // The cavity: everything the voxel heard except this ray's own message.
                             // (Clamped where `ray_messages` clamps anyway: exp overflow is slow.)
-                            let cavity = sigmoid(((s - voxel.own * length as f32) as f64).clamp(-40.0, 40.0));
+                            let cavity = sigmoid(((s - voxel.own * (length * inv_r) as f32) as f64).clamp(-40.0, 40.0));
                             let nu = likelihood.over(c.s_in * ray.cz, c.s_out * ray.cz);
                             scratch.ray.push(slot, length, cavity, nu);
                         }
@@ -1023,7 +1052,7 @@ impl MrfEngine {
                 for j in 0..ray_buf.slots.len() {
                     let l = ray_buf.length[j];
                     let voxel = &mut scratch.voxels[ray_buf.slots[j]];
-                    voxel.length += weight * l;
+                    voxel.length += weight * l * inv_r;
                     voxel.sum += weight * l * inv_r * logit(ray_buf.out[j].clamp(MSG_EPS, 1.0 - MSG_EPS));
                 }
             }
@@ -1044,12 +1073,9 @@ impl MrfEngine {
         for voxel in &scratch.voxels {
             let old = voxel.old.map_or(0.0, |e| e.message);
             if voxel.length > 0.0 {
-                let mut entry = Entry {
-                    slot: voxel.key.slot() as u16,
-                    length: voxel.length as f32,
-                    seen: voxel.seen,
-                    ..Entry::default()
-                };
+                let mut entry = Entry { slot: voxel.key.slot() as u16, ..Entry::default() };
+                entry.set_edges(voxel.length);
+                entry.set_seen(voxel.seen);
                 match voxel.old {
                     Some(e) => {
                         let change = voxel.sum - e.message as f64;
@@ -1100,13 +1126,13 @@ fn check_frame(frame: &Frame) -> Result<()> {
 #[derive(Clone, Copy)]
 struct VoxelAcc {
     key: VoxelKey,
-    /// The tile's old message per metre (a ray's own share per metre of it).
+    /// The tile's old message per voxel edge of length (a ray's own share per edge of it).
     own: f32,
     /// The tile's old entry, if it had one.
     old: Option<Entry>,
     /// `S` as traced.
     seen: f32,
-    /// Summed lengths and length-weighted log-odds messages of this trace.
+    /// Summed lengths (voxel edges) and length-weighted log-odds messages of this trace.
     length: f64,
     sum: f64,
 }
@@ -1160,7 +1186,7 @@ impl TileScratch {
     #[inline]
     fn voxel(&mut self, key: VoxelKey, old: Option<Entry>) -> usize {
         let voxels = &mut self.voxels;
-        let own = old.map_or(0.0, |e| if e.length > 0.0 { e.message / e.length } else { 0.0 });
+        let own = old.map_or(0.0, |e| if e.length > 0 { e.message / e.edges() } else { 0.0 });
         *self.index.entry(key).or_insert_with(|| {
             voxels.push(VoxelAcc { key, own, old, seen: 0.0, length: 0.0, sum: 0.0 });
             voxels.len() - 1

@@ -45,9 +45,10 @@ pub struct MapOptions {
     /// keyframe so far (auto).
     #[arg(long, default_value = "all", value_parser = ["all", "auto"])]
     pub keyframes: String,
-    /// MRF: share of a keyframe's old message kept when it is replaced, in [0, 1) (damped
-    /// belief propagation; 0 is the paper's plain update).
-    #[arg(long, default_value_t = 0.3)]
+    /// MRF: share of a tile's old message kept when it is replaced, in [0, 1) (0, the
+    /// default, is the paper's plain update; messages whose change reverses are halved
+    /// whatever this says).
+    #[arg(long, default_value_t = 0.0)]
     pub damping: f64,
     /// MRF: change-driven belief propagation: sweep until no marginal moves by more than this,
     /// re-tracing only the 16x16-pixel tiles whose voxels moved since they last traced, at

@@ -523,6 +523,7 @@ fn mrf_reference_metric_and_bad_values_and_plain_errors() {
     build_fails(&data, &["--engine", "mrf", "--tolerance", "0"], &["tolerance"]);
     build_fails(&data, &["--engine", "mrf", "--damping", "1"], &["damping", "[0, 1)"]);
     build_fails(&data, &["--engine", "mrf", "--ray-spacing=-1"], &["ray-spacing", "0 or a positive number"]);
+    build_fails(&data, &["--engine", "mrf", "--min-evidence=-1"], &["min-evidence", "0 or a positive number"]);
     let until = dir.join("until.mrfmap");
     let o = run(&[
         "build",

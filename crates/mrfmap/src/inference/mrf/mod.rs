@@ -913,14 +913,12 @@ impl MrfEngine {
             kf.tiles.iter_mut().for_each(|t| t.suspect = true);
         } else {
             let start = self.log.partition_point(|&(e, _)| e <= since);
-            let mut bricks: Vec<BrickKey> = self.log[start..].iter().map(|x| x.1).collect();
-            bricks.sort_unstable();
-            bricks.dedup();
+            let bricks: FxHashSet<BrickKey> = self.log[start..].iter().map(|x| x.1).collect();
             let to_camera = kf.to_camera();
             for &b in &bricks {
                 kf.for_tiles_reaching(&to_camera, b, edge, |t| t.suspect = true);
             }
-            recent = Some(bricks.into_iter().collect());
+            recent = Some(bricks);
         }
         kf.checked_at = self.epoch;
         let kf = &self.keyframes[i];

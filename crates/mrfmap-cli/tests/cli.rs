@@ -488,6 +488,22 @@ fn crm_2d_experiment_writes_its_report() {
 }
 
 #[test]
+fn scaling_keyframe_curve_alone() {
+    let dir = workdir("scaling");
+    let data = dataset(&dir);
+    let out = dir.join("scaling");
+    let o = run(&["scaling", s(&data), "-o", s(&out), "--curves", "keyframes", "--keyframes", "1,2"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let report = std::fs::read_to_string(out.join("report.md")).unwrap();
+    let rows: Vec<&str> = report.lines().filter(|l| l.starts_with("| 1 |") || l.starts_with("| 2 |")).collect();
+    assert_eq!(rows.len(), 2, "{report}");
+    // Two small maps converge well within the sweeps allowed.
+    assert!(rows.iter().all(|r| r.contains("| true |")), "{report}");
+    assert!(!report.contains("vs resolution") && report.contains("`mrf_vs_keyframes.png`."), "{report}");
+    assert!(out.join("mrf_vs_keyframes.png").is_file() && !out.join("time_vs_resolution.png").exists());
+}
+
+#[test]
 fn logodds_marking_walk_and_project_build_the_same_map() {
     let dir = workdir("marking");
     let projected = logodds_map(&dir);

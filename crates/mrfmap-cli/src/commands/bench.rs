@@ -44,7 +44,7 @@ pub struct Args {
 }
 
 /// Sweeps allowed for inferring the map that a keyframe is added to (not timed).
-const BASE_SWEEPS: usize = 300;
+pub(crate) const BASE_SWEEPS: usize = 300;
 
 /// Time to add the last frame to an inferred MRF of the others and infer again with the
 /// engine's default schedule ([`Engine::finish`]): the median of `repeat` runs. The map it is

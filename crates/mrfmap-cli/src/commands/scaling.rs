@@ -19,6 +19,7 @@ use mrfmap::outputs::pictures::write_text;
 use mrfmap::outputs::{Canvas, PlotArea, Rgb};
 use mrfmap::source::{Dataset, Scene};
 
+use super::bench::BASE_SWEEPS;
 use super::demo::DEMO_SCENE;
 
 #[derive(clap::Args)]
@@ -37,6 +38,20 @@ pub struct Args {
     /// CRM particles.
     #[arg(long, default_value_t = 15)]
     particles: usize,
+    /// Which curves to measure (default: all three).
+    #[arg(long, value_delimiter = ',', value_enum, default_values_t = [Curve::Resolution, Curve::ImageSize, Curve::Keyframes])]
+    curves: Vec<Curve>,
+}
+
+/// The curves `mrfmap scaling` can draw.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Curve {
+    /// Time and memory of every engine against resolution.
+    Resolution,
+    /// Time of every engine against image size.
+    ImageSize,
+    /// MRF time against the number of keyframes.
+    Keyframes,
 }
 
 const ENGINES: [(EngineKind, Rgb); 3] =
@@ -119,7 +134,12 @@ fn plot(path: &std::path::Path, title: &str, x_label: &str, y_label: &str, serie
 pub fn run(a: Args) -> Result<()> {
     std::fs::create_dir_all(&a.output)?;
     let dataset = Dataset::open(&a.dataset)?;
-    let frames = (0..dataset.len()).map(|i| dataset.frame(i)).collect::<mrfmap::Result<Vec<_>>>()?;
+    // The keyframe curve renders its own views of the demo room.
+    let frames = if a.curves.iter().any(|c| *c != Curve::Keyframes) {
+        (0..dataset.len()).map(|i| dataset.frame(i)).collect::<mrfmap::Result<Vec<_>>>()?
+    } else {
+        Vec::new()
+    };
     let baseline = peak_mib_and_reset();
     let mut report = format!(
         "# Scaling on {} ({} frames of {}x{}), {} threads\n\nCommand: `mrfmap scaling {} -o {}`. \
@@ -134,7 +154,32 @@ pub fn run(a: Args) -> Result<()> {
         a.particles
     );
 
-    // Resolution.
+    if a.curves.contains(&Curve::Resolution) {
+        resolution_curves(&a, &frames, &mut report)?;
+    }
+    if a.curves.contains(&Curve::ImageSize) {
+        image_size_curves(&a, &frames, &mut report)?;
+    }
+    if a.curves.contains(&Curve::Keyframes) {
+        keyframe_curves(&a, &mut report)?;
+    }
+    let plots: Vec<&str> = [
+        (Curve::Resolution, "`time_vs_resolution.png`, `memory_vs_resolution.png`"),
+        (Curve::ImageSize, "`time_vs_image_size.png`"),
+        (Curve::Keyframes, "`mrf_vs_keyframes.png`"),
+    ]
+    .iter()
+    .filter(|(c, _)| a.curves.contains(c))
+    .map(|p| p.1)
+    .collect();
+    let _ = writeln!(report, "\nPlots: {}.", plots.join(", "));
+    write_text(&a.output.join("report.md"), &report)?;
+    print!("{report}");
+    Ok(())
+}
+
+/// Time and peak memory of every engine against resolution.
+fn resolution_curves(a: &Args, frames: &[Frame], report: &mut String) -> Result<()> {
     let _ = writeln!(
         report,
         "\n## Time and peak memory vs resolution\n\n| engine | res (m) | s/frame | peak MiB |\n|---|---|---|---|"
@@ -143,7 +188,7 @@ pub fn run(a: Args) -> Result<()> {
     for (kind, colour) in ENGINES {
         let (mut t, mut m) = (Vec::new(), Vec::new());
         for &r in &a.resolutions {
-            let (secs, mib) = time_build(kind, r, a.particles, &frames)?;
+            let (secs, mib) = time_build(kind, r, a.particles, frames)?;
             let _ = writeln!(report, "| {kind} | {r} | {secs:.3} | {mib:.0} |");
             eprintln!("{kind} {r}: {secs:.3} s/frame, {mib:.0} MiB");
             t.push((r * 100.0, secs));
@@ -167,7 +212,11 @@ pub fn run(a: Args) -> Result<()> {
         &mem_series,
     )?;
 
-    // Image size.
+    Ok(())
+}
+
+/// Time of every engine against image size (every engine at 0.02 m).
+fn image_size_curves(a: &Args, frames: &[Frame], report: &mut String) -> Result<()> {
     let _ = writeln!(report, "\n## Time vs image size (0.02 m)\n\n| engine | image | s/frame |\n|---|---|---|");
     let mut image_series = Vec::new();
     for (kind, colour) in ENGINES {
@@ -189,7 +238,11 @@ pub fn run(a: Args) -> Result<()> {
         &image_series,
     )?;
 
-    // MRF keyframes: views of the demo room on a circle.
+    Ok(())
+}
+
+/// MRF time against the number of keyframes, on views of the demo room on a circle.
+fn keyframe_curves(a: &Args, report: &mut String) -> Result<()> {
     let scene = Scene::from_toml(DEMO_SCENE, "demo_room.toml".as_ref()).context("demo scene")?;
     let n_max = a.keyframes.iter().copied().max().unwrap_or(1);
     let orbit = |k: usize| {
@@ -206,23 +259,27 @@ pub fn run(a: Args) -> Result<()> {
     let _ = writeln!(
         report,
         "\n## MRF vs number of keyframes (demo room, 0.05 m)\n\nAll with the default schedule \
-         (change-driven, until converged). Full build: add N keyframes and infer. Add one, \
-         overlapping: add a view of the same room to N inferred keyframes and infer again \
-         (every keyframe overlaps it). Add one, apart: the N keyframes are copies 100 m apart \
-         from each other (none overlaps the new one except the first).\n\n\
-         | N | full build s | add one (overlapping) s | add one (apart) s | tiles traced (overlapping) | tiles traced (apart) |\n|---|---|---|---|---|---|"
+         (change-driven). Full build: add N keyframes and infer (timed). The map is then \
+         inferred to convergence (at most {BASE_SWEEPS} sweeps, not timed; \"converged\" says \
+         whether it got there), as `mrfmap bench --incremental` does. Add one, overlapping: add \
+         a view of the same room to the N inferred keyframes and infer again (every keyframe \
+         overlaps it). Add one, apart: the N keyframes are copies 100 m apart from each other \
+         (none overlaps the new one except the first).\n\n\
+         | N | full build s | converged | add one (overlapping) s | add one (apart) s | tiles traced (overlapping) | tiles traced (apart) |\n|---|---|---|---|---|---|---|"
     );
     let (mut full, mut add_near, mut add_far) = (Vec::new(), Vec::new(), Vec::new());
     for &n in &a.keyframes {
         let params = MrfParams::default();
-        let build = |frames: &[Frame]| -> Result<(MrfEngine, f64)> {
+        let build = |frames: &[Frame]| -> Result<(MrfEngine, f64, bool)> {
             let mut e = MrfEngine::new(0.05, Default::default(), params)?;
             let t = Instant::now();
             for f in frames {
                 e.add_keyframe(f.clone())?;
             }
             e.finish()?;
-            Ok((e, t.elapsed().as_secs_f64()))
+            let secs = t.elapsed().as_secs_f64();
+            let converged = e.run_until(params.tolerance.unwrap_or(DEFAULT_TOLERANCE), BASE_SWEEPS).converged;
+            Ok((e, secs, converged))
         };
         let add = |e: &mut MrfEngine| -> Result<(f64, usize)> {
             let t = Instant::now();
@@ -230,13 +287,15 @@ pub fn run(a: Args) -> Result<()> {
             let r = e.run_until(params.tolerance.unwrap_or(DEFAULT_TOLERANCE), params.iterations);
             Ok((t.elapsed().as_secs_f64(), r.tiles))
         };
-        let (mut near, full_secs) = build(&room[..n])?;
+        let (mut near, full_secs, converged) = build(&room[..n])?;
         let (near_secs, near_tiles) = add(&mut near)?;
         let apart: Vec<Frame> = (0..n).map(|k| render(k, 100.0 * k as f64)).collect();
-        let (mut far, _) = build(&apart)?;
+        let (mut far, _, _) = build(&apart)?;
         let (far_secs, far_tiles) = add(&mut far)?;
-        let _ =
-            writeln!(report, "| {n} | {full_secs:.2} | {near_secs:.2} | {far_secs:.2} | {near_tiles} | {far_tiles} |");
+        let _ = writeln!(
+            report,
+            "| {n} | {full_secs:.2} | {converged} | {near_secs:.2} | {far_secs:.2} | {near_tiles} | {far_tiles} |"
+        );
         eprintln!("mrf {n} keyframes: build {full_secs:.2} s, add near {near_secs:.2} s, add apart {far_secs:.2} s");
         full.push((n as f64, full_secs));
         add_near.push((n as f64, near_secs));
@@ -253,11 +312,5 @@ pub fn run(a: Args) -> Result<()> {
             ("ADD ONE, OTHERS APART".into(), [31, 119, 180], add_far),
         ],
     )?;
-    let _ = writeln!(
-        report,
-        "\nPlots: `time_vs_resolution.png`, `memory_vs_resolution.png`, `time_vs_image_size.png`, `mrf_vs_keyframes.png`."
-    );
-    write_text(&a.output.join("report.md"), &report)?;
-    print!("{report}");
     Ok(())
 }

@@ -22,11 +22,7 @@
 //!   of every keyframe in turn. [`MrfEngine::run_until`] is change-driven: a sweep re-traces
 //!   only the tiles for which some voxel's marginal moved by more than a tolerance since
 //!   they saw it (or which new bricks may lie on), until no tile is left. Both trace one
-//!   keyframe's tiles against the same `S`, then apply them in tile order. Within a tile the
-//!   rays go one after another, each seeing in its cavities the change the tile's earlier
-//!   rays made (Gauss-Seidel within the tile: its rays through a voxel are nearly alike, and
-//!   updated at once they overshoot together; the fixed points are the same, and the demo
-//!   room's default build traces 38% fewer tiles at 0.05 m, RESULTS.md). Tiles are applied damped:
+//!   keyframe's tiles against the same `S`, then apply them in tile order, damped:
 //!   [`MrfParams::damping`] of a tile's old message (log-odds) stays, and a message whose
 //!   change keeps reversing direction is damped more (loopy belief propagation can cycle
 //!   where voxels compete for one surface). Which tiles a change may affect is found by
@@ -1040,9 +1036,7 @@ impl MrfEngine {
                             voxel.seen = s;
                             // The cavity: everything the voxel heard except this ray's own message.
                             // (Clamped where `ray_messages` clamps anyway: exp overflow is slow.)
-                            let cavity = sigmoid(
-                                ((s + voxel.shift - voxel.own * (length * inv_r) as f32) as f64).clamp(-40.0, 40.0),
-                            );
+                            let cavity = sigmoid(((s - voxel.own * (length * inv_r) as f32) as f64).clamp(-40.0, 40.0));
                             let nu = likelihood.over(c.s_in * ray.cz, c.s_out * ray.cz);
                             scratch.ray.push(slot, length, cavity, nu);
                         }
@@ -1060,10 +1054,8 @@ impl MrfEngine {
                 for j in 0..ray_buf.slots.len() {
                     let l = ray_buf.length[j];
                     let voxel = &mut scratch.voxels[ray_buf.slots[j]];
-                    let m = logit(ray_buf.out[j].clamp(MSG_EPS, 1.0 - MSG_EPS));
                     voxel.length += weight * l * inv_r;
-                    voxel.sum += weight * l * inv_r * m;
-                    voxel.shift += (weight * l * inv_r * (m - voxel.own as f64)) as f32;
+                    voxel.sum += weight * l * inv_r * logit(ray_buf.out[j].clamp(MSG_EPS, 1.0 - MSG_EPS));
                 }
             }
         }
@@ -1142,9 +1134,6 @@ struct VoxelAcc {
     old: Option<Entry>,
     /// `S` as traced.
     seen: f32,
-    /// How far this trace's rays so far moved the tile's message to the voxel (log-odds):
-    /// later rays of the tile see it in their cavities.
-    shift: f32,
     /// Summed lengths (voxel edges) and length-weighted log-odds messages of this trace.
     length: f64,
     sum: f64,
@@ -1201,7 +1190,7 @@ impl TileScratch {
         let voxels = &mut self.voxels;
         let own = old.map_or(0.0, |e| if e.length > 0 { e.message / e.edges() } else { 0.0 });
         *self.index.entry(key).or_insert_with(|| {
-            voxels.push(VoxelAcc { key, own, old, seen: 0.0, shift: 0.0, length: 0.0, sum: 0.0 });
+            voxels.push(VoxelAcc { key, own, old, seen: 0.0, length: 0.0, sum: 0.0 });
             voxels.len() - 1
         })
     }

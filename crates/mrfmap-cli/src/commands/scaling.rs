@@ -145,7 +145,7 @@ pub fn run(a: Args) -> Result<()> {
         "# Scaling on {} ({} frames of {}x{}), {} threads\n\nCommand: `mrfmap scaling {} -o {}`. \
          Baseline (frames loaded): {baseline:.0} MiB peak resident. CRM with {} particles.\n",
         a.dataset.display(),
-        frames.len(),
+        dataset.len(),
         dataset.camera().width,
         dataset.camera().height,
         rayon::current_num_threads(),
@@ -270,6 +270,7 @@ fn keyframe_curves(a: &Args, report: &mut String) -> Result<()> {
     let (mut full, mut add_near, mut add_far) = (Vec::new(), Vec::new(), Vec::new());
     for &n in &a.keyframes {
         let params = MrfParams::default();
+        let tolerance = params.tolerance.unwrap_or(DEFAULT_TOLERANCE);
         let build = |frames: &[Frame]| -> Result<(MrfEngine, f64, bool)> {
             let mut e = MrfEngine::new(0.05, Default::default(), params)?;
             let t = Instant::now();
@@ -278,13 +279,13 @@ fn keyframe_curves(a: &Args, report: &mut String) -> Result<()> {
             }
             e.finish()?;
             let secs = t.elapsed().as_secs_f64();
-            let converged = e.run_until(params.tolerance.unwrap_or(DEFAULT_TOLERANCE), BASE_SWEEPS).converged;
+            let converged = e.run_until(tolerance, BASE_SWEEPS).converged;
             Ok((e, secs, converged))
         };
         let add = |e: &mut MrfEngine| -> Result<(f64, usize)> {
             let t = Instant::now();
             e.add_keyframe(room[n].clone())?;
-            let r = e.run_until(params.tolerance.unwrap_or(DEFAULT_TOLERANCE), params.iterations);
+            let r = e.run_until(tolerance, params.iterations);
             Ok((t.elapsed().as_secs_f64(), r.tiles))
         };
         let (mut near, full_secs, converged) = build(&room[..n])?;

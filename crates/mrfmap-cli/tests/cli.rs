@@ -501,6 +501,11 @@ fn scaling_keyframe_curve_alone() {
     assert!(rows.iter().all(|r| r.contains("| true |")), "{report}");
     assert!(!report.contains("vs resolution") && report.contains("`mrf_vs_keyframes.png`."), "{report}");
     assert!(out.join("mrf_vs_keyframes.png").is_file() && !out.join("time_vs_resolution.png").exists());
+    // Refused before any work: no keyframes, and more views than memory holds.
+    for (count, needle) in [("0", "at least 1"), ("100000", "fewer --keyframes")] {
+        let o = run(&["scaling", s(&data), "-o", s(&out), "--curves", "keyframes", "--keyframes", count]);
+        assert!(!o.status.success() && stderr(&o).contains(needle), "{}", stderr(&o));
+    }
 }
 
 #[test]

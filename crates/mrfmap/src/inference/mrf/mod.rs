@@ -65,7 +65,9 @@ pub use messages::{MU_EPS, ray_messages};
 use super::{Engine, logit, sigmoid};
 use crate::error::{Error, Result};
 use crate::frames::{Frame, NoiseModel, Pose, default_noise_model};
-use crate::map::{BRICK_EDGE, BRICK_VOXELS, BrickKey, Grid, Map, MapVoxel, VoxelKey};
+use crate::map::{
+    BRICK_EDGE, BRICK_VOXELS, Brick, BrickKey, Grid, Map, MapVoxel, SlotMask, VoxelKey, mask_set, mask_slots,
+};
 use crate::rays::{FrameRays, RayLimits, for_each_crossing, pose_parts};
 
 /// Which bricks a keyframe allocates.
@@ -481,11 +483,6 @@ struct Traced {
     rays: usize,
 }
 
-/// Sort order of entries: by brick, then slot.
-fn entry_order(k: &VoxelKey) -> (BrickKey, usize) {
-    (k.brick(), k.slot())
-}
-
 impl MrfEngine {
     /// The map voxel of a marginal's log-odds sum `S`: none where the evidence is too weak
     /// (`S` within [`MrfParams::min_evidence`], and at least [`UNOBSERVED`], of the prior),
@@ -847,16 +844,23 @@ impl MrfEngine {
         let mut bricks: Vec<BrickKey> = (0..rays.rows())
             .into_par_iter()
             .fold(Vec::new, |mut out: Vec<BrickKey>, v| {
+                // Neighbouring pixels' depth points often share a voxel: its bricks once.
+                let mut last = None;
                 for ray in rays.row(v) {
                     let Some(seg) = limits.forward_model_segment(&ray, &kf.noise) else { continue };
                     if seg.hits_surface {
-                        // Bricks of the voxels within one voxel of the depth point.
-                        let p = FrameRays::endpoint(&ray);
-                        let k = VoxelKey::from_point(p, r);
-                        for dz in -1..=1 {
-                            for dy in -1..=1 {
-                                for dx in -1..=1 {
-                                    out.push(VoxelKey([k.0[0] + dx, k.0[1] + dy, k.0[2] + dz]).brick());
+                        // Bricks of the voxels within one voxel of the depth point: one to
+                        // eight (the same brick unless the voxel is on a brick's face).
+                        let k = VoxelKey::from_point(FrameRays::endpoint(&ray), r);
+                        if last != Some(k) {
+                            last = Some(k);
+                            let lo = VoxelKey(k.0.map(|i| i - 1)).brick().0;
+                            let hi = VoxelKey(k.0.map(|i| i + 1)).brick().0;
+                            for z in lo[2]..=hi[2] {
+                                for y in lo[1]..=hi[1] {
+                                    for x in lo[0]..=hi[0] {
+                                        out.push(BrickKey([x, y, z]));
+                                    }
                                 }
                             }
                         }
@@ -999,14 +1003,20 @@ impl MrfEngine {
 
     /// Traces tile `t` of keyframe `kf`: every ray with its cavities, and the tile's new
     /// entries (damped against its old ones) and the changes they make to the sums.
-    fn trace_tile(&self, kf: &Keyframe, rays: &FrameRays<'_>, t: usize, scratch: &mut TileScratch) -> Traced {
+    fn trace_tile<'a>(
+        &'a self,
+        kf: &Keyframe,
+        rays: &FrameRays<'_>,
+        t: usize,
+        scratch: &mut TileScratch<'a>,
+    ) -> Traced {
         let tile = &kf.tiles[t];
         let r = self.resolution();
         let inv_r = 1.0 / r;
         // The tile's voxels: old ones first (their message per metre is the rays' own share).
         scratch.clear();
         for (key, e) in tile.iter() {
-            scratch.voxel(key, Some(*e));
+            scratch.voxel(key, Some(*e), &self.sums);
         }
         let (cols, rows) = kf.tile_pixels(t);
         let (mut z_max, mut traced) = (0.0f64, 0usize);
@@ -1028,35 +1038,62 @@ impl MrfEngine {
                 z_max = z_max.max(seg.end * ray.cz);
                 let measured = ray.range * ray.cz;
                 let mut likelihood = kf.noise.along_ray(ray.u, ray.v, measured);
-                scratch.next_ray();
+                scratch.ray.clear();
+                // Voxels before the first one with any likelihood (the free stretch, about
+                // 40% of a ray's voxels at 0.02 m) get the message 0 whatever anyone's belief:
+                // a surface there would make the reading impossible. Nor does their belief
+                // reach the other voxels' messages (`ray_messages`'s prefix stays 0 through
+                // them). So they need no cavity and no place in the ray's factor.
+                let mut window = false;
                 for_each_crossing(ray.origin, ray.dir, seg.start, seg.end, edge, |b| {
                     let key = BrickKey(b.key.0);
-                    let Some(sums) = self.sums.brick(key) else {
+                    let Some((table, Some(sums))) = scratch.table_of(key, &self.sums) else {
                         return ControlFlow::Continue(()); // unallocated: skipped, as the reference does
                     };
                     for_each_crossing(ray.origin, ray.dir, b.s_in, b.s_out, r, |c| {
-                        let s = if c.key.brick() == key { sums.get(c.key.slot()) } else { self.sums.get(c.key) }; // rounding at a brick face
+                        // (A voxel of another brick: rounding at a brick face.)
+                        let inside = c.key.brick() == key;
+                        let s = if inside { sums.get(c.key.slot()) } else { self.sums.get(c.key) };
                         if let Some(&s) = s {
                             let length = c.length();
-                            let slot = scratch.slot_of(c.key);
+                            let slot = if inside {
+                                scratch.voxel_in(table, c.key, None)
+                            } else {
+                                scratch.voxel(c.key, None, &self.sums)
+                            };
                             let voxel = &mut scratch.voxels[slot];
                             voxel.seen = s;
-                            // The cavity: everything the voxel heard except this ray's own message.
-                            // (Clamped where `ray_messages` clamps anyway: exp overflow is slow.)
-                            let cavity = sigmoid(((s - voxel.own * (length * inv_r) as f32) as f64).clamp(-40.0, 40.0));
                             let nu = likelihood.over(c.s_in * ray.cz, c.s_out * ray.cz);
-                            scratch.ray.push(slot, length, cavity, nu);
+                            window |= nu > 0.0;
+                            if window {
+                                // The cavity: everything the voxel heard except this ray's own
+                                // message. (Clamped where `ray_messages` clamps anyway: exp
+                                // overflow is slow.)
+                                let cavity =
+                                    sigmoid(((s - voxel.own * (length * inv_r) as f32) as f64).clamp(-40.0, 40.0));
+                                scratch.ray.push(slot, length, cavity, nu);
+                            } else {
+                                scratch.ray.free.push((slot, length));
+                            }
                         }
                         ControlFlow::Continue(())
                     });
                     ControlFlow::Continue(())
                 });
-                if scratch.ray.slots.is_empty() {
+                if scratch.ray.slots.is_empty() && scratch.ray.free.is_empty() {
                     continue;
                 }
                 let z_end = seg.end * ray.cz;
                 let beyond = if seg.hits_surface { likelihood.over(z_end, z_end + r * ray.cz) } else { 0.0 };
                 let ray_buf = &mut scratch.ray;
+                // The free stretch's message: 0 (clamped), unless the ray has no likelihood
+                // anywhere, beyond included, and says nothing (1/2).
+                let free = if window || beyond > 0.0 { logit(MSG_EPS) } else { 0.0 };
+                for &(slot, l) in &ray_buf.free {
+                    let voxel = &mut scratch.voxels[slot];
+                    voxel.length += weight * l * inv_r;
+                    voxel.sum += weight * l * inv_r * free;
+                }
                 ray_messages(&ray_buf.mu, &ray_buf.nu, beyond, &mut ray_buf.out);
                 for j in 0..ray_buf.slots.len() {
                     let l = ray_buf.length[j];
@@ -1075,11 +1112,12 @@ impl MrfEngine {
         // how a fixed point is approached, not where it is. Voxels its rays no longer reach
         // lose its message.
         let keep = self.params.damping;
-        // (voxel, entry, change of the sum), sorted once; voxels no ray reaches any more lose
-        // the tile's message (`gone`, rare, sorted apart).
+        // (voxel, entry, change of the sum) by brick and slot; voxels no ray reaches any more
+        // lose the tile's message (`gone`, rare, in the same order, applied after).
         let mut kept = Vec::with_capacity(scratch.voxels.len());
         let mut gone = Vec::new();
-        for voxel in &scratch.voxels {
+        for i in scratch.sorted() {
+            let voxel = &scratch.voxels[i];
             let old = voxel.old.map_or(0.0, |e| e.message);
             if voxel.length > 0.0 {
                 let mut entry = Entry { slot: voxel.key.slot() as u16, ..Entry::default() };
@@ -1107,8 +1145,6 @@ impl MrfEngine {
                 gone.push((voxel.key, -old));
             }
         }
-        kept.sort_unstable_by_key(|e| entry_order(&e.0));
-        gone.sort_unstable_by_key(|d| entry_order(&d.0));
         let entries = kept.iter().map(|&(k, e, _)| (k, e)).collect();
         let deltas = kept.iter().map(|&(k, _, d)| (k, d)).chain(gone).collect();
         Traced { tile: t, entries, deltas, z_max: z_max as f32, rays: traced }
@@ -1148,65 +1184,119 @@ struct VoxelAcc {
 
 /// Per-tile buffers, reused across the tiles a thread traces.
 #[derive(Default)]
-struct TileScratch {
+struct TileScratch<'a> {
     voxels: Vec<VoxelAcc>,
-    index: FxHashMap<VoxelKey, usize>,
+    /// Per brick the tile's rays cross, its index in `tables` ([`UNALLOCATED`] for none).
+    /// A tile's rays cross mostly the same bricks: this small table answers where the map's
+    /// large one cost a cache miss per brick of every ray (13% of a trace).
+    bricks: FxHashMap<BrickKey, u32>,
+    /// The first `used` are in use (the rest are kept for reuse).
+    tables: Vec<SlotTable<'a>>,
+    used: usize,
     ray: RayScratch,
-    /// The previous ray's voxels and slots, and how far along them the current ray is.
-    prev: Vec<(VoxelKey, usize)>,
-    cursor: usize,
 }
 
-impl TileScratch {
+/// [`TileScratch::bricks`] value of a brick that is not allocated.
+const UNALLOCATED: u32 = u32::MAX;
+
+/// One brick's voxels among a tile's: its sums, per slot the index in
+/// [`TileScratch::voxels`] (`u32::MAX` for none), and which slots are set. A ray is traced
+/// brick by brick, so its voxels are found by one brick lookup and array indexing (a hash
+/// lookup per voxel was a tenth of a trace, and sorting the voxels afterwards another 7%).
+struct SlotTable<'a> {
+    key: BrickKey,
+    sums: Option<&'a Brick<f32>>,
+    index: Box<[u32; BRICK_VOXELS]>,
+    set: SlotMask,
+}
+
+impl<'a> TileScratch<'a> {
     fn clear(&mut self) {
-        self.voxels.clear();
-        self.index.clear();
-        self.prev.clear();
-        self.ray.clear();
-    }
-
-    /// Starts a ray: the last one's voxels become the guesses for this one's.
-    fn next_ray(&mut self) {
-        if !self.ray.visited.is_empty() {
-            std::mem::swap(&mut self.prev, &mut self.ray.visited);
-        }
-        self.cursor = 0;
-        self.ray.clear();
-    }
-
-    /// The slot of voxel `key` (added if new). Neighbouring rays of a tile cross mostly the
-    /// same voxels in the same order, so the previous ray's next voxels are tried before the
-    /// hash table (which was a third of a trace).
-    #[inline]
-    fn slot_of(&mut self, key: VoxelKey) -> usize {
-        let end = (self.cursor + 2).min(self.prev.len());
-        let slot = match (self.cursor..end).find(|&q| self.prev[q].0 == key) {
-            Some(q) => {
-                self.cursor = q + 1;
-                self.prev[q].1
+        for table in &mut self.tables[..self.used] {
+            for slot in mask_slots(&table.set) {
+                table.index[slot] = u32::MAX;
             }
-            None => self.voxel(key, None),
-        };
-        self.ray.visited.push((key, slot));
-        slot
+            table.set = [0; 8];
+        }
+        self.used = 0;
+        self.bricks.clear();
+        self.voxels.clear();
+        self.ray.clear();
     }
 
-    /// The slot of voxel `key`, added with the tile's `old` entry if new.
+    /// The table of brick `key` with its sums in `grid`, `None` if the brick is not allocated
+    /// (and has no table).
     #[inline]
-    fn voxel(&mut self, key: VoxelKey, old: Option<Entry>) -> usize {
-        let voxels = &mut self.voxels;
+    fn table_of(&mut self, key: BrickKey, grid: &'a Grid<f32>) -> Option<(usize, Option<&'a Brick<f32>>)> {
+        let t = match self.bricks.get(&key) {
+            Some(&t) => t,
+            None => {
+                let t = match grid.brick(key) {
+                    Some(sums) => self.add_table(key, Some(sums)),
+                    None => UNALLOCATED,
+                };
+                self.bricks.insert(key, t);
+                t
+            }
+        };
+        (t != UNALLOCATED).then(|| (t as usize, self.tables[t as usize].sums))
+    }
+
+    fn add_table(&mut self, key: BrickKey, sums: Option<&'a Brick<f32>>) -> u32 {
+        if self.used == self.tables.len() {
+            self.tables.push(SlotTable { key, sums, index: Box::new([u32::MAX; BRICK_VOXELS]), set: [0; 8] });
+        }
+        let table = &mut self.tables[self.used];
+        (table.key, table.sums) = (key, sums);
+        self.used += 1;
+        (self.used - 1) as u32
+    }
+
+    /// The index of voxel `key`, added with the tile's `old` entry if new (with a table for
+    /// its brick even if `grid` no longer holds it: the old message must still go).
+    #[inline]
+    fn voxel(&mut self, key: VoxelKey, old: Option<Entry>, grid: &'a Grid<f32>) -> usize {
+        let t = match self.table_of(key.brick(), grid) {
+            Some((t, _)) => t,
+            None => {
+                let t = self.add_table(key.brick(), None);
+                self.bricks.insert(key.brick(), t);
+                t as usize
+            }
+        };
+        self.voxel_in(t, key, old)
+    }
+
+    /// [`TileScratch::voxel`] for a voxel of table `t`'s brick.
+    #[inline]
+    fn voxel_in(&mut self, t: usize, key: VoxelKey, old: Option<Entry>) -> usize {
+        let table = &mut self.tables[t];
+        let slot = key.slot();
+        let i = table.index[slot];
+        if i != u32::MAX {
+            return i as usize;
+        }
         let own = old.map_or(0.0, |e| if e.length > 0 { e.message / e.edges() } else { 0.0 });
-        *self.index.entry(key).or_insert_with(|| {
-            voxels.push(VoxelAcc { key, own, old, seen: 0.0, length: 0.0, sum: 0.0 });
-            voxels.len() - 1
-        })
+        let i = self.voxels.len();
+        table.index[slot] = i as u32;
+        mask_set(&mut table.set, slot);
+        self.voxels.push(VoxelAcc { key, own, old, seen: 0.0, length: 0.0, sum: 0.0 });
+        i
+    }
+
+    /// The voxels' indices by brick, then slot.
+    fn sorted(&self) -> impl Iterator<Item = usize> + '_ {
+        let mut order: Vec<&SlotTable> = self.tables[..self.used].iter().collect();
+        order.sort_unstable_by_key(|t| t.key);
+        order.into_iter().flat_map(|t| mask_slots(&t.set).map(|slot| t.index[slot] as usize))
     }
 }
 
 /// Per-ray buffers.
 #[derive(Default)]
 struct RayScratch {
-    visited: Vec<(VoxelKey, usize)>,
+    /// The free stretch's voxels (slot, length), before the first with any likelihood.
+    free: Vec<(usize, f64)>,
     slots: Vec<usize>,
     length: Vec<f64>,
     mu: Vec<f64>,
@@ -1216,7 +1306,7 @@ struct RayScratch {
 
 impl RayScratch {
     fn clear(&mut self) {
-        self.visited.clear();
+        self.free.clear();
         self.slots.clear();
         self.length.clear();
         self.mu.clear();

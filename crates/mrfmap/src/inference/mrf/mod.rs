@@ -843,7 +843,7 @@ impl MrfEngine {
         let limits = self.limits;
         let mut bricks: Vec<BrickKey> = (0..rays.rows())
             .into_par_iter()
-            .fold(Vec::new, |mut out: Vec<BrickKey>, v| {
+            .fold(FxHashSet::default, |mut out: FxHashSet<BrickKey>, v| {
                 // Neighbouring pixels' depth points often share a voxel: its bricks once.
                 let mut last = None;
                 for ray in rays.row(v) {
@@ -859,7 +859,7 @@ impl MrfEngine {
                             for z in lo[2]..=hi[2] {
                                 for y in lo[1]..=hi[1] {
                                     for x in lo[0]..=hi[0] {
-                                        out.push(BrickKey([x, y, z]));
+                                        out.insert(BrickKey([x, y, z]));
                                     }
                                 }
                             }
@@ -868,21 +868,20 @@ impl MrfEngine {
                     if full {
                         let edge = r * BRICK_EDGE as f64;
                         for_each_crossing(ray.origin, ray.dir, seg.start, seg.end, edge, |c| {
-                            out.push(BrickKey(c.key.0));
+                            out.insert(BrickKey(c.key.0));
                             ControlFlow::Continue(())
                         });
                     }
                 }
-                out.sort_unstable();
-                out.dedup();
                 out
             })
-            .reduce(Vec::new, |mut a, b| {
+            .reduce(FxHashSet::default, |mut a, b| {
                 a.extend(b);
                 a
-            });
+            })
+            .into_iter()
+            .collect();
         bricks.sort_unstable();
-        bricks.dedup();
         bricks
     }
 

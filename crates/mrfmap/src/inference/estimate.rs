@@ -7,7 +7,8 @@
 //! edge (twice: a ray crosses a brick at a slant). The smaller bound wins; indoor scenes are
 //! volume-bound, long trajectories ray-bound. Bytes per brick were measured on coffin-world
 //! and the demo room (BENCHMARKS.md) and include each engine's scratch memory: log-odds
-//! 6 KiB, CRM 1 KiB + 512 voxels x 4 (particles + 1) bytes. The MRF (band allocation)
+//! 6 KiB, CRM 1 KiB + 4 (particles + 1) bytes per voxel it allocates (512, or fewer in a
+//! map thinner than a brick, such as a planar laser's). The MRF (band allocation)
 //! allocates around depth points only, three bricks per brick holding end points: 5 KiB
 //! each for the marginals (and the values the change log compares with), and per keyframe
 //! 3 KiB each for its tiles' messages (12 bytes per voxel a tile's rays reach and 16 per
@@ -78,6 +79,12 @@ impl Extent {
         let by_rays = 2.0 * self.ray_length / edge;
         by_volume.min(by_rays.max(1.0))
     }
+
+    /// Voxels per brick the readings can reach: 512, or fewer where the box is thinner than
+    /// a brick (a planar laser's map is one voxel thick: 64 per brick).
+    pub fn voxels_per_brick(&self, resolution: f64) -> f64 {
+        (0..3).map(|a| (((self.max[a] - self.min[a]) / resolution).floor() + 1.0).min(BRICK_EDGE as f64)).product()
+    }
 }
 
 /// Estimated peak memory in bytes of building `config`'s map from `readings` frames or scans.
@@ -90,11 +97,20 @@ impl Extent {
 /// assert!(bytes > 1e7 && bytes < 1e9, "{bytes}");
 /// let tiny = EngineConfig::new(EngineKind::LogOdds, 1e-9);
 /// assert!(estimate_memory(&tiny, &room, 10) > 1e15);
+/// // CRM keeps a pdf per voxel it allocates: a planar laser's one-voxel-thick map needs an
+/// // eighth of a room's pdfs per brick.
+/// let crm = EngineConfig::new(EngineKind::Crm, 0.05);
+/// let floor = Extent::new([[-3.0, -3.0, 0.0], [3.0, 3.0, 0.0]], 1e7, &crm).unwrap();
+/// let thick = Extent::new([[-3.0, -3.0, 0.0], [3.0, 3.0, 3.0]], 1e7, &crm).unwrap();
+/// assert_eq!(floor.voxels_per_brick(0.05), 64.0);
+/// assert!(estimate_memory(&crm, &floor, 10) < estimate_memory(&crm, &thick, 10) / 8.0);
 /// ```
 pub fn estimate_memory(config: &EngineConfig, extent: &Extent, readings: usize) -> f64 {
     let per_brick = match config.kind {
         EngineKind::LogOdds => 6144.0,
-        EngineKind::Crm => 1024.0 + 512.0 * 4.0 * (config.crm.particles as f64 + 1.0),
+        EngineKind::Crm => {
+            1024.0 + extent.voxels_per_brick(config.resolution) * 4.0 * (config.crm.particles as f64 + 1.0)
+        }
         EngineKind::Mrf => {
             // Band allocation: bricks around depth points (and their neighbours), for the
             // marginals and for each keyframe's tiles.

@@ -21,8 +21,9 @@
 //!
 //! Why it is fast enough to use: along a ray, every voxel before the first one with any
 //! likelihood has the factor `1 - m` exactly (no cause before it, none on it), whatever its
-//! mean; such *free passes* are only counted per voxel (`n`), and applied once per frame as
-//! `(1 - m)^n` from a table. Factors within [`FACTOR_EPS`] of constant (voxels behind the
+//! mean; such *free passes* are only counted per voxel (`n`), and multiplied in as
+//! `(1 - m)^n` from a table once a few frames' worth have gathered (or the voxel gets a
+//! factor); until then they stay pending beside its pdf, and its mean is read through them. Factors within [`FACTOR_EPS`] of constant (voxels behind the
 //! surface that explains the reading) are skipped, those within it of `1 - m` counted as
 //! passes; the rest (about 25 per ray for a D435 at 0.02 m) are folded into the pdfs brick by
 //! brick in parallel. Likelihoods are cut at 6 std ([`crate::frames::TAIL_CUTOFF`]). `engine_equals_plain_per_ray_updates`
@@ -123,20 +124,29 @@ const FACTOR_EPS: f64 = 1e-6;
 /// Largest free-pass count with a precomputed power table; larger counts compose powers.
 const POWER_TABLE: usize = 64;
 
-/// One brick of the CRM map: the voxels allocated in it, each with a pdf and its mean.
+/// A voxel's free passes are multiplied into its pdf once they reach this many (fewer stay
+/// pending; see [`CrmEngine::apply`]).
+const LAZY_PASSES: usize = 8;
+
+/// One brick of the CRM map: the voxels allocated in it, each with a pdf, its mean, and
+/// free passes not yet multiplied in: the voxel's distribution is `pdf (1 - m)^pending`,
+/// renormalised (see [`CrmEngine::apply`]).
 #[derive(Clone, Debug)]
 struct CrmBrick {
     /// Slot -> index into `means` (`u16::MAX`: not allocated). Boxed: a frame's bricks move
     /// out of the map and back, and moving 1 KiB each way was 6% of a laser log's build.
     local: Box<[u16; BRICK_VOXELS]>,
+    /// The mean of `pdfs` (without the pending passes).
     means: Vec<f32>,
     /// `particles` probabilities per allocated voxel.
     pdfs: Vec<f32>,
+    /// Free passes per allocated voxel not yet in its pdf (below [`LAZY_PASSES`]).
+    pending: Vec<u8>,
 }
 
 impl CrmBrick {
     fn new() -> Self {
-        CrmBrick { local: Box::new([u16::MAX; BRICK_VOXELS]), means: Vec::new(), pdfs: Vec::new() }
+        CrmBrick { local: Box::new([u16::MAX; BRICK_VOXELS]), means: Vec::new(), pdfs: Vec::new(), pending: Vec::new() }
     }
 
     #[inline]
@@ -153,6 +163,7 @@ impl CrmBrick {
         let i = self.means.len();
         self.local[slot] = i as u16;
         self.means.push(0.5);
+        self.pending.push(0);
         self.pdfs.extend(std::iter::repeat_n(1.0 / k as f32, k));
         i
     }
@@ -253,17 +264,38 @@ impl CrmEngine {
     pub fn mean_variance(&self, key: VoxelKey) -> Option<(f64, f64)> {
         let b = self.bricks.get(&key.brick())?;
         let i = b.index(key.slot())?;
-        Some(self.moments(&b.pdfs[i * self.particles()..(i + 1) * self.particles()]))
+        Some(self.moments(b, i))
     }
 
-    fn moments(&self, pdf: &[f32]) -> (f64, f64) {
-        let (mut mean, mut second) = (0.0, 0.0);
-        for (p, m) in pdf.iter().zip(&self.grid) {
-            let (p, m) = (*p as f64, *m as f64);
+    /// Mean and variance of voxel `i` of brick `b`, its pending passes included.
+    fn moments(&self, b: &CrmBrick, i: usize) -> (f64, f64) {
+        let k = self.particles();
+        let pdf = &b.pdfs[i * k..(i + 1) * k];
+        let n = b.pending[i] as usize;
+        let power = &self.powers[n * k..(n + 1) * k];
+        let (mut sum, mut mean, mut second) = (0.0, 0.0, 0.0);
+        for ((p, w), m) in pdf.iter().zip(power).zip(&self.grid) {
+            let (p, m) = ((*p * *w) as f64, *m as f64);
+            sum += p;
             mean += m * p;
             second += m * m * p;
         }
+        if n > 0 && sum > 1e-30 {
+            (mean, second) = (mean / sum, second / sum);
+        }
         (mean, (second - mean * mean).max(0.0))
+    }
+
+    /// The mean of voxel `i` of brick `b`, its pending passes included (the pdf as it is if
+    /// they underflow it, as [`normalise`] falls back).
+    fn mean(&self, b: &CrmBrick, i: usize) -> f32 {
+        let n = b.pending[i] as usize;
+        if n == 0 {
+            return b.means[i];
+        }
+        let k = self.particles();
+        let (sum, weighted) = product_sums(&b.pdfs[i * k..(i + 1) * k], &self.powers[n * k..(n + 1) * k], &self.grid);
+        if sum > 1e-30 && sum.is_finite() { weighted / sum } else { b.means[i] }
     }
 
     /// The cause-model factors of every ray of `rays`, from the map as it was before.
@@ -320,7 +352,7 @@ impl CrmEngine {
                                     b
                                 }
                             };
-                            let mean = b.and_then(|b| b.index(c.key.slot())).map_or(0.5, |i| b.unwrap().means[i]);
+                            let mean = b.and_then(|b| Some(self.mean(b, b.index(c.key.slot())?))).unwrap_or(0.5);
                             window.push(c.key);
                             means.push(mean as f64);
                             nus.push(nu);
@@ -399,23 +431,21 @@ impl CrmEngine {
             for slot in mask_slots(&touched) {
                 let existing = brick.index(slot);
                 let has_factors = fb.factors.get(next_factor).is_some_and(|f| f.0 as usize == slot);
-                let n = fb.passes[slot] as usize;
-                if let (Some(i), false, true) = (existing, has_factors, n < POWER_TABLE) {
-                    // Free passes only (most voxels a frame touches): multiplied in and
-                    // renormalised in place, the same arithmetic as below without the copies.
-                    // If every particle underflows the pdf is renormalised as it was (the
-                    // fallback of `normalise`).
-                    let pdf = &mut brick.pdfs[i * k..(i + 1) * k];
-                    let power = &powers[n * k..(n + 1) * k];
-                    let (sum, weighted) = product_sums(pdf, power, grid);
-                    if sum > 1e-30 && sum.is_finite() {
-                        let inv = 1.0 / sum;
-                        pdf.iter_mut().zip(power).for_each(|(x, w)| *x = *x * w * inv);
-                        brick.means[i] = weighted * inv;
-                    } else {
-                        brick.means[i] = scale_to_one(pdf, sums(pdf, grid));
+                let mut n = fb.passes[slot] as usize;
+                let mut earlier = 0;
+                if let Some(i) = existing {
+                    // Free passes only (most voxels a frame touches) are counted, not
+                    // multiplied in: the pdf is read and written once per few frames, or
+                    // when a factor or a ray's cause model needs it. The factors commute, so
+                    // this changes rounding only, as long as no more passes are multiplied in
+                    // at once than a frame may bring (the few frames' passes, applied first
+                    // below, are below `LAZY_PASSES`).
+                    let total = n + brick.pending[i] as usize;
+                    if !has_factors && total < LAZY_PASSES {
+                        brick.pending[i] = total as u8;
+                        continue;
                     }
-                    continue;
+                    earlier = std::mem::take(&mut brick.pending[i]) as usize;
                 }
                 // The pdf before this frame, read in place (copying it was a fifth of a laser
                 // log's build): the fallback if every particle underflows.
@@ -424,7 +454,12 @@ impl CrmEngine {
                     None => &uniform,
                 };
                 p.copy_from_slice(last);
-                let mut n = n;
+                if earlier > 0 {
+                    for (pj, pw) in p.iter_mut().zip(&powers[earlier * k..(earlier + 1) * k]) {
+                        *pj *= pw;
+                    }
+                    normalise(&mut p, last, grid);
+                }
                 while n > 0 {
                     let step = n.min(POWER_TABLE - 1);
                     for (pj, pw) in p.iter_mut().zip(&powers[step * k..(step + 1) * k]) {
@@ -569,7 +604,7 @@ impl Engine for CrmEngine {
         for (bk, b) in &self.bricks {
             for slot in 0..BRICK_VOXELS {
                 if let Some(i) = b.index(slot) {
-                    map.voxels.insert(bk.voxel(slot), map_voxel(self.moments(&b.pdfs[i * k..(i + 1) * k])));
+                    map.voxels.insert(bk.voxel(slot), map_voxel(self.moments(b, i)));
                 }
             }
         }
@@ -739,6 +774,9 @@ mod tests {
         }
         // Voxels the engine left out (first-frame evidence too weak) sit at the prior.
         assert!(engine.voxel_count() <= plain.len() && engine.voxel_count() > plain.len() / 2);
+        // Free passes still pending (not in the pdfs) are part of what is compared below.
+        let pending = engine.bricks.values().flat_map(|b| &b.pending).filter(|&&n| n > 0).count();
+        assert!(pending > 100, "{pending} voxels with pending passes");
         let prior_var = (k as f64 + 1.0) / (12.0 * (k as f64 - 1.0));
         let mut worst = 0.0f64;
         for (key, p) in &plain {

@@ -266,19 +266,12 @@ impl Tile {
             .flat_map(move |n| self.run(n).iter().map(move |e| (self.runs[n].0.voxel(e.slot as usize), e)))
     }
 
-    /// A tile of `entries` (voxel and entry, sorted by brick and slot).
-    fn from_sorted(entries: Vec<(VoxelKey, Entry)>, traced_at: u64, z_max: f32) -> Tile {
-        let mut runs: Vec<(BrickKey, u32)> = Vec::new();
-        for (j, (key, _)) in entries.iter().enumerate() {
-            if runs.last().is_none_or(|&(b, _)| b != key.brick()) {
-                runs.push((key.brick(), j as u32));
-            }
+    /// Appends the entry of voxel `key` (entries come sorted by brick and slot).
+    fn push(&mut self, key: VoxelKey, entry: Entry) {
+        if self.runs.last().is_none_or(|&(b, _)| b != key.brick()) {
+            self.runs.push((key.brick(), self.entries.len() as u32));
         }
-        runs.shrink_to_fit();
-        // Not `collect`: it would keep the larger allocation of `entries` (in-place collect).
-        let mut compact = Vec::with_capacity(entries.len());
-        compact.extend(entries.into_iter().map(|(_, e)| e));
-        Tile { entries: compact, runs, traced_at, z_max, ..Tile::default() }
+        self.entries.push(entry);
     }
 
     /// Drops the entries in bricks `freed`; true if there were any.
@@ -286,9 +279,14 @@ impl Tile {
         if !self.runs.iter().any(|(b, _)| freed.contains(b)) {
             return false;
         }
-        let kept: Vec<(VoxelKey, Entry)> =
-            self.iter().filter(|(k, _)| !freed.contains(&k.brick())).map(|(k, e)| (k, *e)).collect();
-        *self = Tile { stale: true, ..Tile::from_sorted(kept, self.traced_at, self.z_max) };
+        let mut kept = Tile { stale: true, traced_at: self.traced_at, z_max: self.z_max, ..Tile::default() };
+        kept.entries.reserve_exact(self.entries.len());
+        for (k, e) in self.iter().filter(|(k, _)| !freed.contains(&k.brick())) {
+            kept.push(k, *e);
+        }
+        kept.entries.shrink_to_fit();
+        kept.runs.shrink_to_fit();
+        *self = kept;
         true
     }
 }
@@ -474,12 +472,13 @@ impl RunReport {
 
 /// One tile's trace, before it is applied.
 struct Traced {
-    tile: usize,
-    entries: Vec<(VoxelKey, Entry)>,
-    /// `S` changes: the new messages minus the old ones, in runs by brick (the entries'
-    /// order, then voxels the tile's rays no longer reach).
-    deltas: Vec<(VoxelKey, f32)>,
-    z_max: f32,
+    /// Which tile, and what it becomes (without its epoch).
+    index: usize,
+    tile: Tile,
+    /// Per entry of `tile`, the change it makes to `S`: its new message minus its old one.
+    changes: Vec<f32>,
+    /// The changes to voxels the tile's rays no longer reach (minus their old messages).
+    gone: Vec<(VoxelKey, f32)>,
     rays: usize,
 }
 
@@ -739,25 +738,28 @@ impl MrfEngine {
     /// which found it within the tolerance: so changes that go unseen stay below 1.5
     /// tolerances.
     fn apply(&mut self, deltas: &[(VoxelKey, f32)]) {
-        let theta = self.log_threshold;
         for run in deltas.chunk_by(|a, b| a.0.brick() == b.0.brick()) {
-            let bk = run[0].0.brick();
-            let (Some(sums), Some(logged)) = (self.sums.brick_mut(bk), self.logged.brick_mut(bk)) else { continue };
-            let mut moved = false;
-            for (key, d) in run {
-                let slot = key.slot();
-                if let (Some(s), Some(l)) = (sums.get_mut(slot), logged.get_mut(slot)) {
-                    *s += d;
-                    // |d sigmoid| <= |dS| / 4: the exponentials only for changes that may matter.
-                    if (*s - *l).abs() as f64 > 4.0 * theta && (sigmoid(*s as f64) - sigmoid(*l as f64)).abs() > theta {
-                        *l = *s;
-                        moved = true;
-                    }
+            self.apply_run(run[0].0.brick(), run.iter().map(|(k, d)| (k.slot(), *d)));
+        }
+    }
+
+    /// [`MrfEngine::apply`] of `(slot, change)` pairs of brick `bk`.
+    fn apply_run(&mut self, bk: BrickKey, run: impl Iterator<Item = (usize, f32)>) {
+        let theta = self.log_threshold;
+        let (Some(sums), Some(logged)) = (self.sums.brick_mut(bk), self.logged.brick_mut(bk)) else { return };
+        let mut moved = false;
+        for (slot, d) in run {
+            if let (Some(s), Some(l)) = (sums.get_mut(slot), logged.get_mut(slot)) {
+                *s += d;
+                // |d sigmoid| <= |dS| / 4: the exponentials only for changes that may matter.
+                if (*s - *l).abs() as f64 > 4.0 * theta && (sigmoid(*s as f64) - sigmoid(*l as f64)).abs() > theta {
+                    *l = *s;
+                    moved = true;
                 }
             }
-            if moved {
-                self.stamp(bk);
-            }
+        }
+        if moved {
+            self.stamp(bk);
         }
     }
 
@@ -983,8 +985,8 @@ impl MrfEngine {
         report.keyframe_updates = 1;
         report.tiles = tiles.len();
         // All traced against the same sums, then applied in tile order: the same sums
-        // whatever the number of threads. (Held at once: a keyframe's new entries, about
-        // what its tiles already hold.)
+        // whatever the number of threads. (Held at once: a keyframe's new tiles with a change
+        // per entry, 16 bytes per entry on top of what its tiles already hold.)
         let kf = &self.keyframes[i];
         let rays = FrameRays::new(&kf.frame);
         let pending: Vec<Traced> = tiles
@@ -992,10 +994,16 @@ impl MrfEngine {
             .map_init(TileScratch::default, |scratch, &t| self.trace_tile(kf, &rays, t, scratch))
             .collect();
         self.epoch += 1;
-        for tr in pending {
+        for mut tr in pending {
             report.rays += tr.rays;
-            self.apply(&tr.deltas);
-            self.keyframes[i].tiles[tr.tile] = Tile::from_sorted(tr.entries, self.epoch, tr.z_max);
+            for n in 0..tr.tile.runs.len() {
+                let start = tr.tile.runs[n].1 as usize;
+                let run = tr.tile.run(n).iter().zip(&tr.changes[start..]);
+                self.apply_run(tr.tile.runs[n].0, run.map(|(e, d)| (e.slot as usize, *d)));
+            }
+            self.apply(&tr.gone);
+            tr.tile.traced_at = self.epoch;
+            self.keyframes[i].tiles[tr.index] = tr.tile;
         }
         report
     }
@@ -1111,9 +1119,12 @@ impl MrfEngine {
         // how a fixed point is approached, not where it is. Voxels its rays no longer reach
         // lose its message.
         let keep = self.params.damping;
-        // (voxel, entry, change of the sum) by brick and slot; voxels no ray reaches any more
-        // lose the tile's message (`gone`, rare, in the same order, applied after).
-        let mut kept = Vec::with_capacity(scratch.voxels.len());
+        // The new tile by brick and slot, with each entry's change of the sum; voxels no ray
+        // reaches any more lose the tile's message (`gone`, rare, in the same order, applied
+        // after).
+        let mut new = Tile { z_max: z_max as f32, ..Tile::default() };
+        new.entries.reserve_exact(scratch.voxels.len());
+        let mut changes = Vec::with_capacity(scratch.voxels.len());
         let mut gone = Vec::new();
         for i in scratch.sorted() {
             let voxel = &scratch.voxels[i];
@@ -1139,14 +1150,15 @@ impl MrfEngine {
                     }
                     None => entry.message = voxel.sum as f32,
                 }
-                kept.push((voxel.key, entry, entry.message - old));
+                new.push(voxel.key, entry);
+                changes.push(entry.message - old);
             } else if old != 0.0 {
                 gone.push((voxel.key, -old));
             }
         }
-        let entries = kept.iter().map(|&(k, e, _)| (k, e)).collect();
-        let deltas = kept.iter().map(|&(k, _, d)| (k, d)).chain(gone).collect();
-        Traced { tile: t, entries, deltas, z_max: z_max as f32, rays: traced }
+        new.entries.shrink_to_fit(); // (voxels no longer reached leave room)
+        new.runs.shrink_to_fit();
+        Traced { index: t, tile: new, changes, gone, rays: traced }
     }
 }
 

@@ -23,10 +23,11 @@
 //! likelihood has the factor `1 - m` exactly (no cause before it, none on it), whatever its
 //! mean; such *free passes* are only counted per voxel (`n`), and multiplied in as
 //! `(1 - m)^n` from a table once a few frames' worth have gathered (or the voxel gets a
-//! factor); until then they stay pending beside its pdf, and its mean is read through them. Factors within [`FACTOR_EPS`] of constant (voxels behind the
-//! surface that explains the reading) are skipped, those within it of `1 - m` counted as
-//! passes; the rest (about 25 per ray for a D435 at 0.02 m) are folded into the pdfs brick by
-//! brick in parallel. Likelihoods are cut at 6 std ([`crate::frames::TAIL_CUTOFF`]). `engine_equals_plain_per_ray_updates`
+//! factor); until then they stay pending beside its pdf, and its mean is read through them.
+//! Factors within [`FACTOR_EPS`] of constant (voxels behind the surface that explains the
+//! reading) are skipped, those within it of `1 - m` counted as passes; the rest (about 25 per
+//! ray for a D435 at 0.02 m) are folded into the pdfs brick by brick in parallel. Likelihoods
+//! are cut at 6 std ([`crate::frames::TAIL_CUTOFF`]). `engine_equals_plain_per_ray_updates`
 //! checks all of this against the plain per-ray update. Speed and memory against log-odds
 //! are in BENCHMARKS.md (per frame 18x log-odds with 101 particles, 15x with 15; 6.5x and
 //! 5.4x log-odds walking every ray, which this update has to do and log-odds no longer does).
@@ -511,8 +512,9 @@ const NEW_VOXEL_MIN_CHANGE: f32 = 1e-3;
 /// Factors multiplied in between renormalisations.
 const RENORMALISE_EVERY: usize = 8;
 
-/// Sums of `p` and of `p * grid` with eight accumulators (so the loop vectorises; the order,
-/// and so the result, is fixed).
+/// Sums of `p` and of `p * grid`, in eight lanes (element `j` to lane `j mod 8`) whose order,
+/// and so the result, is fixed. (The compiler leaves this loop scalar; writing it so that it
+/// vectorises made no measurable difference: the pdfs' memory traffic dominates.)
 #[inline]
 fn sums(p: &[f32], grid: &[f32]) -> (f32, f32) {
     sums_of(p, p, grid, |a, _| a)
@@ -706,9 +708,9 @@ mod tests {
         let (m_free, _) = e.mean_variance(VoxelKey([10, 0, 0])).unwrap();
         assert!(m_wall > 0.9 && m_free < 0.05, "wall {m_wall}, free {m_free}");
         // The wall moves back 0.5 m: the confident voxels where it was only get free passes
-        // now (the in-place path). Their means fall, but not below the lowest particle that
-        // kept any mass in f32 while 300 frames saw the wall (0.71 here): the pdf's support
-        // does not grow back.
+        // now (pending, then multiplied in). Their means fall, but not below the lowest
+        // particle that kept any mass in f32 while 300 frames saw the wall (0.71 here): the
+        // pdf's support does not grow back.
         for f in wall_frames(600, 0.5).iter().skip(1).step_by(2) {
             e.integrate(f).unwrap();
         }

@@ -207,13 +207,15 @@ pub fn write_view_pictures(
 
 fn truth_json(m: &TruthMetrics) -> String {
     format!(
-        "{{\"voxels\": {}, \"mae\": {}, \"auc\": {}, \"ic_gamma_0.5\": {}, \"ic_gamma_2\": {}, \"pearson_sigma_error\": {}}}",
+        "{{\"voxels\": {}, \"mae\": {}, \"auc\": {}, \"ic_gamma_0.5\": {}, \"ic_gamma_2\": {}, \"pearson_sigma_error\": {}, \"precision\": {}, \"recall\": {}}}",
         m.voxels,
         json_number(Some(m.mae)),
         json_number(Some(m.auc)),
         json_number(Some(m.ic_half)),
         json_number(Some(m.ic_two)),
-        json_number(Some(m.pearson_sigma_error))
+        json_number(Some(m.pearson_sigma_error)),
+        json_number(Some(m.precision)),
+        json_number(Some(m.recall))
     )
 }
 
@@ -259,7 +261,7 @@ pub fn run(a: Args) -> Result<()> {
             json_fields.push(format!("\"truth\": {}", truth_json(&m)));
         } else {
             println!(
-                "ground truth ({} voxels): MAE {:.4}, ROC AUC {:.4}, I_c(0.5) {:.1} ({:.4}/voxel), I_c(2) {:.1} ({:.4}/voxel), corr(sigma, |e|) {:.4}",
+                "ground truth ({} voxels): MAE {:.4}, ROC AUC {:.4}, I_c(0.5) {:.1} ({:.4}/voxel), I_c(2) {:.1} ({:.4}/voxel), corr(sigma, |e|) {:.4}, occupied (> 0.5): precision {:.4}, recall {:.4}",
                 m.voxels,
                 m.mae,
                 m.auc,
@@ -267,7 +269,9 @@ pub fn run(a: Args) -> Result<()> {
                 m.ic_half / m.voxels.max(1) as f64,
                 m.ic_two,
                 m.ic_two / m.voxels.max(1) as f64,
-                m.pearson_sigma_error
+                m.pearson_sigma_error,
+                m.precision,
+                m.recall
             );
         }
         if let Some(dir) = &a.slices {

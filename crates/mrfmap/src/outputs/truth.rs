@@ -6,7 +6,8 @@
 //! where it has one, else `sqrt(m (1 - m))`), and the error `e = truth - m`. Reported:
 //! mean absolute error, ROC AUC of `m` as a classifier of `truth >= 0.5`, the inconsistency
 //! `I_c = sum max(0, |e| - gamma sigma)` for gamma 0.5 and 2 (as sums, and per voxel), and
-//! the Pearson correlation of `sigma` with `|e|`.
+//! the Pearson correlation of `sigma` with `|e|`; and, for a planner that thresholds at 1/2,
+//! the precision and recall of the occupied voxels (`m > 0.5`) against `truth >= 0.5`.
 
 use crate::map::{Map, MapVoxel, VoxelKey};
 use crate::source::{GridWorld, Scene};
@@ -29,6 +30,11 @@ pub struct TruthMetrics {
     pub ic_two: f64,
     /// Pearson correlation of sigma with |error| (`NaN` when either is constant).
     pub pearson_sigma_error: f64,
+    /// Share of the voxels with mean above 1/2 whose truth is at least 1/2 (`NaN` if none).
+    pub precision: f64,
+    /// Share of the voxels with truth at least 1/2 whose mean is above 1/2 (`NaN` if none).
+    /// Over the compared voxels only: a voxel the map leaves out is not counted.
+    pub recall: f64,
 }
 
 /// Per-voxel quantities behind [`TruthMetrics`] (also what the slice pictures show).
@@ -127,6 +133,7 @@ pub fn truth_metrics(map: &Map, scene: &Scene) -> TruthMetrics {
 /// let m = metrics_of(&[v(1.0, 0.9, 0.1), v(0.0, 0.2, 0.3), v(0.0, 0.5, 0.5)]);
 /// assert!((m.mae - (0.1 + 0.2 + 0.5) / 3.0).abs() < 1e-12);
 /// assert_eq!(m.auc, 1.0);
+/// assert_eq!((m.precision, m.recall), (1.0, 1.0)); // 0.5 is not above 1/2
 /// ```
 pub fn metrics_of(vt: &[VoxelTruth]) -> TruthMetrics {
     let n = vt.len();
@@ -135,6 +142,8 @@ pub fn metrics_of(vt: &[VoxelTruth]) -> TruthMetrics {
     let labels: Vec<bool> = vt.iter().map(|t| t.truth >= 0.5).collect();
     let sigmas: Vec<f64> = vt.iter().map(|t| t.sigma).collect();
     let errors: Vec<f64> = vt.iter().map(|t| t.error().abs()).collect();
+    let count = |f: &dyn Fn(&VoxelTruth) -> bool| vt.iter().filter(|t| f(t)).count() as f64;
+    let hits = count(&|t| t.mean > 0.5 && t.truth >= 0.5);
     TruthMetrics {
         voxels: n,
         mae: if n == 0 { f64::NAN } else { mae },
@@ -142,6 +151,8 @@ pub fn metrics_of(vt: &[VoxelTruth]) -> TruthMetrics {
         ic_half: vt.iter().map(|t| t.inconsistency(0.5)).sum(),
         ic_two: vt.iter().map(|t| t.inconsistency(2.0)).sum(),
         pearson_sigma_error: pearson(&sigmas, &errors),
+        precision: hits / count(&|t| t.mean > 0.5),
+        recall: hits / count(&|t| t.truth >= 0.5),
     }
 }
 
@@ -220,6 +231,18 @@ mod tests {
             }
         }
         sum / n as f64
+    }
+
+    #[test]
+    fn precision_and_recall_of_the_occupied_voxels() {
+        let v = |truth, mean| VoxelTruth { truth, mean, sigma: 0.1 };
+        // Occupied (> 0.5): a true hit, a false one and a 0.75-solid voxel; 0.5 itself is not
+        // occupied, and a 0.25-solid voxel is free in truth.
+        let m = metrics_of(&[v(1.0, 0.9), v(0.0, 0.6), v(0.75, 0.7), v(1.0, 0.5), v(0.25, 0.8), v(0.0, 0.1)]);
+        assert_eq!(m.precision, 2.0 / 4.0);
+        assert_eq!(m.recall, 2.0 / 3.0);
+        let none = metrics_of(&[v(0.0, 0.2)]);
+        assert!(none.precision.is_nan() && none.recall.is_nan());
     }
 
     #[test]

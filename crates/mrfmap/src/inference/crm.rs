@@ -22,8 +22,10 @@
 //! Why it is fast enough to use: along a ray, every voxel before the first one with any
 //! likelihood has the factor `1 - m` exactly (no cause before it, none on it), whatever its
 //! mean; such *free passes* are only counted per voxel (`n`), and multiplied in as
-//! `(1 - m)^n` from a table once a few frames' worth have gathered (or the voxel gets a
-//! factor); until then they stay pending beside its pdf, and its mean is read through them.
+//! `(1 - m)^n` from a table once a few dozen have gathered (or the voxel gets a factor);
+//! until then they stay pending beside its pdf, and its mean is read through them. Where so
+//! many passes at once would underflow a confident pdf in f32, they are applied in
+//! logarithms instead.
 //! Factors within [`FACTOR_EPS`] of constant (voxels behind the surface that explains the
 //! reading) are skipped, those within it of `1 - m` counted as passes; the rest (about 25 per
 //! ray for a D435 at 0.02 m) are folded into the pdfs brick by brick in parallel. Likelihoods
@@ -126,8 +128,9 @@ const FACTOR_EPS: f64 = 1e-6;
 const POWER_TABLE: usize = 64;
 
 /// A voxel's free passes are multiplied into its pdf once they reach this many (fewer stay
-/// pending; see [`CrmEngine::apply`]).
-const LAZY_PASSES: usize = 8;
+/// pending; see [`CrmEngine::apply`]). Many passes at once can underflow every particle of a
+/// confident pdf in f32; [`CrmEngine::pass_weights`] then redoes them in logarithms.
+const LAZY_PASSES: usize = 48;
 
 /// One brick of the CRM map: the voxels allocated in it, each with a pdf, its mean, and
 /// free passes not yet multiplied in: the voxel's distribution is `pdf (1 - m)^pending`,
@@ -225,6 +228,8 @@ pub struct CrmEngine {
     grid: Vec<f32>,
     /// `(1 - m_k)^n` for `n < POWER_TABLE`, row-major by `n`.
     powers: Vec<f32>,
+    /// `ln(1 - m_k)`, for passes that underflow f32 (see [`CrmEngine::pass_weights`]).
+    log_free: Vec<f64>,
     limits: RayLimits,
     default_noise: Arc<NoiseModel>,
 }
@@ -241,11 +246,13 @@ impl CrmEngine {
         let grid: Vec<f32> = (0..k).map(|j| (j as f64 / (k - 1) as f64) as f32).collect();
         let powers =
             (0..POWER_TABLE).flat_map(|n| grid.iter().map(move |m| (1.0 - *m as f64).powi(n as i32) as f32)).collect();
+        let log_free = grid.iter().map(|m| (1.0 - *m as f64).ln()).collect();
         Ok(CrmEngine {
             bricks: FxHashMap::default(),
             resolution,
             grid,
             powers,
+            log_free,
             limits,
             default_noise: Arc::new(default_noise_model()),
         })
@@ -272,31 +279,98 @@ impl CrmEngine {
     fn moments(&self, b: &CrmBrick, i: usize) -> (f64, f64) {
         let k = self.particles();
         let pdf = &b.pdfs[i * k..(i + 1) * k];
-        let n = b.pending[i] as usize;
-        let power = &self.powers[n * k..(n + 1) * k];
-        let (mut sum, mut mean, mut second) = (0.0, 0.0, 0.0);
-        for ((p, w), m) in pdf.iter().zip(power).zip(&self.grid) {
-            let (p, m) = ((*p * *w) as f64, *m as f64);
-            sum += p;
-            mean += m * p;
-            second += m * m * p;
+        let mut acc = [0.0f64; 3];
+        let mut add = |j: usize, p: f64| {
+            let m = self.grid[j] as f64;
+            acc = [acc[0] + p, acc[1] + m * p, acc[2] + m * m * p];
+        };
+        // (Passes that leave nothing, only possible for a pdf all at m = 1, are ignored.)
+        if !self.pass_weights(pdf, b.pending[i] as usize, &mut add) {
+            self.pass_weights(pdf, 0, &mut add);
         }
-        if n > 0 && sum > 1e-30 {
-            (mean, second) = (mean / sum, second / sum);
-        }
+        let [sum, mean, second] = acc;
+        let (mean, second) = (mean / sum, second / sum);
         (mean, (second - mean * mean).max(0.0))
     }
 
-    /// The mean of voxel `i` of brick `b`, its pending passes included (the pdf as it is if
-    /// they underflow it, as [`normalise`] falls back).
+    /// The mean of voxel `i` of brick `b`, its pending passes included.
     fn mean(&self, b: &CrmBrick, i: usize) -> f32 {
         let n = b.pending[i] as usize;
         if n == 0 {
             return b.means[i];
         }
+        // The common case inline (this is read for every voxel of a ray's window).
         let k = self.particles();
-        let (sum, weighted) = product_sums(&b.pdfs[i * k..(i + 1) * k], &self.powers[n * k..(n + 1) * k], &self.grid);
-        if sum > 1e-30 && sum.is_finite() { weighted / sum } else { b.means[i] }
+        let pdf = &b.pdfs[i * k..(i + 1) * k];
+        let (sum, weighted) = product_sums(pdf, &self.powers[n * k..(n + 1) * k], &self.grid);
+        if sum > MIN_SUM && sum.is_finite() {
+            return weighted / sum;
+        }
+        let (mut sum, mut weighted) = (0.0, 0.0);
+        let usable = self.pass_weights(pdf, n, |j, p| {
+            sum += p;
+            weighted += self.grid[j] as f64 * p;
+        });
+        if usable { (weighted / sum) as f32 } else { b.means[i] }
+    }
+
+    /// Calls `each(j, w_j)` with weights proportional to `pdf_j (1 - m_j)^n`: in f32 from the
+    /// power table where their sum stays above [`MIN_SUM`], else in logarithms relative to
+    /// the largest (a confident pdf near m = 1 underflows f32 after a few dozen passes).
+    /// False, with no calls, if nothing is left (every particle with mass is at m = 1).
+    fn pass_weights(&self, pdf: &[f32], n: usize, mut each: impl FnMut(usize, f64)) -> bool {
+        let k = self.particles();
+        if n == 0 {
+            pdf.iter().enumerate().for_each(|(j, p)| each(j, *p as f64)); // normalised already
+            return true;
+        }
+        if n < POWER_TABLE {
+            let power = &self.powers[n * k..(n + 1) * k];
+            let sum = product_sums(pdf, power, &self.grid).0;
+            if sum > MIN_SUM && sum.is_finite() {
+                pdf.iter().zip(power).enumerate().for_each(|(j, (p, w))| each(j, (*p * *w) as f64));
+                return true;
+            }
+        }
+        let log_weight = |j: usize| {
+            let p = pdf[j] as f64;
+            if p > 0.0 && (n == 0 || self.log_free[j].is_finite()) {
+                p.ln() + n as f64 * self.log_free[j]
+            } else {
+                f64::NEG_INFINITY
+            }
+        };
+        let top = (0..k).map(log_weight).fold(f64::NEG_INFINITY, f64::max);
+        if !top.is_finite() {
+            return false;
+        }
+        (0..k).for_each(|j| each(j, (log_weight(j) - top).exp()));
+        true
+    }
+
+    /// Multiplies `n` free passes, `(1 - m)^n`, into `p` and renormalises it; returns its mean,
+    /// or `None` (and `p` unchanged) if nothing would be left.
+    fn multiply_passes(&self, p: &mut [f32], n: usize) -> Option<f32> {
+        let k = self.particles();
+        let (mut left, mut mean) = (n, None);
+        while left > 0 {
+            let step = left.min(POWER_TABLE - 1);
+            let power = &self.powers[step * k..(step + 1) * k];
+            // The sums of the products first, so that `p` is still there if they underflow.
+            let (sum, weighted) = product_sums(p, power, &self.grid);
+            if !(sum > MIN_SUM && sum.is_finite()) {
+                let before = p.to_vec();
+                if !self.pass_weights(&before, left, |j, w| p[j] = w as f32) {
+                    return None;
+                }
+                return Some(scale_to_one(p, sums(p, &self.grid)));
+            }
+            let inv = 1.0 / sum;
+            p.iter_mut().zip(power).for_each(|(x, w)| *x = *x * *w * inv);
+            mean = Some(weighted * inv);
+            left -= step;
+        }
+        mean
     }
 
     /// The cause-model factors of every ray of `rays`, from the map as it was before.
@@ -414,7 +488,8 @@ impl CrmEngine {
             .into_iter()
             .map(|(key, fb)| (key, self.bricks.remove(&key).unwrap_or_else(CrmBrick::new), fb))
             .collect();
-        let (grid, powers) = (&self.grid, &self.powers);
+        let engine = &*self;
+        let grid = &engine.grid;
         work.par_iter_mut().for_each(|(_, brick, fb)| {
             // Factors grouped by slot, ray order kept within a slot.
             fb.factors.sort_by_key(|f| f.0);
@@ -433,20 +508,18 @@ impl CrmEngine {
                 let existing = brick.index(slot);
                 let has_factors = fb.factors.get(next_factor).is_some_and(|f| f.0 as usize == slot);
                 let mut n = fb.passes[slot] as usize;
-                let mut earlier = 0;
                 if let Some(i) = existing {
                     // Free passes only (most voxels a frame touches) are counted, not
-                    // multiplied in: the pdf is read and written once per few frames, or
-                    // when a factor or a ray's cause model needs it. The factors commute, so
-                    // this changes rounding only, as long as no more passes are multiplied in
-                    // at once than a frame may bring (the few frames' passes, applied first
-                    // below, are below `LAZY_PASSES`).
+                    // multiplied in: the pdf is read and written once per few dozen passes,
+                    // or when a factor or a ray's cause model needs it. The factors commute,
+                    // so this changes rounding only.
                     let total = n + brick.pending[i] as usize;
                     if !has_factors && total < LAZY_PASSES {
                         brick.pending[i] = total as u8;
                         continue;
                     }
-                    earlier = std::mem::take(&mut brick.pending[i]) as usize;
+                    n = total;
+                    brick.pending[i] = 0;
                 }
                 // The pdf before this frame, read in place (copying it was a fifth of a laser
                 // log's build): the fallback if every particle underflows.
@@ -455,22 +528,11 @@ impl CrmEngine {
                     None => &uniform,
                 };
                 p.copy_from_slice(last);
-                if earlier > 0 {
-                    for (pj, pw) in p.iter_mut().zip(&powers[earlier * k..(earlier + 1) * k]) {
-                        *pj *= pw;
-                    }
-                    normalise(&mut p, last, grid);
-                }
-                while n > 0 {
-                    let step = n.min(POWER_TABLE - 1);
-                    for (pj, pw) in p.iter_mut().zip(&powers[step * k..(step + 1) * k]) {
-                        *pj *= pw;
-                    }
-                    n -= step;
-                    // The last step needs no renormalising of its own: the particle at m = 0
-                    // keeps its mass, and the factors renormalise every few.
-                    if n > 0 {
-                        normalise(&mut p, last, grid);
+                let mut mean = None;
+                if n > 0 {
+                    mean = engine.multiply_passes(&mut p, n);
+                    if mean.is_none() {
+                        p.copy_from_slice(last);
                     }
                 }
                 // Factors are scaled to a maximum of 1, so a few of them in a row cannot
@@ -481,6 +543,7 @@ impl CrmEngine {
                     for (pj, m) in p.iter_mut().zip(grid) {
                         *pj *= alpha * m + beta;
                     }
+                    mean = None;
                     pending += 1;
                     if pending == RENORMALISE_EVERY {
                         normalise(&mut p, last, grid);
@@ -488,7 +551,7 @@ impl CrmEngine {
                     }
                     next_factor += 1;
                 }
-                let mean = normalise(&mut p, last, grid);
+                let mean = mean.unwrap_or_else(|| normalise(&mut p, last, grid));
                 // A voxel seen for the first time whose evidence hardly moves it (voxels deep
                 // behind a surface that noisy long readings reach) stays unknown instead of
                 // entering the map at its prior.
@@ -508,6 +571,10 @@ impl CrmEngine {
 
 /// A new voxel enters the map only if its first frame moves its mean this far from 0.5.
 const NEW_VOXEL_MIN_CHANGE: f32 = 1e-3;
+
+/// A pdf's sum below this counts as underflowed (f32 keeps normal numbers down to 1e-38, so
+/// particles lost to underflow are below 1e-8 of such a sum together).
+const MIN_SUM: f32 = 1e-30;
 
 /// Factors multiplied in between renormalisations.
 const RENORMALISE_EVERY: usize = 8;
@@ -553,7 +620,7 @@ fn sums_of(p: &[f32], w: &[f32], grid: &[f32], value: impl Fn(f32, f32) -> f32) 
 #[inline]
 fn normalise(p: &mut [f32], last: &[f32], grid: &[f32]) -> f32 {
     let (sum, weighted) = sums(p, grid);
-    if !(sum > 1e-30 && sum.is_finite()) {
+    if !(sum > MIN_SUM && sum.is_finite()) {
         p.copy_from_slice(last);
         return scale_to_one(p, sums(p, grid));
     }
@@ -687,6 +754,43 @@ mod tests {
                 Frame { index: i, timestamp: i as f64, depth, pose, camera, noise: None }
             })
             .collect()
+    }
+
+    #[test]
+    fn many_passes_at_once_match_f64_where_f32_underflows() {
+        let e = CrmEngine::new(0.05, Default::default(), CrmParams::default()).unwrap();
+        let k = e.particles();
+        // Confidently occupied: mass near m = 1, and none (in f32) below m = 0.6.
+        let raw: Vec<f64> = e.grid.iter().map(|m| (*m as f64).powi(180)).collect();
+        let total: f64 = raw.iter().sum();
+        let pdf: Vec<f32> = raw.iter().map(|x| (x / total) as f32).collect();
+        for n in [1, 8, 30, 47, 63, 64, 200] {
+            let exact: Vec<f64> =
+                pdf.iter().zip(&e.grid).map(|(p, m)| *p as f64 * (1.0 - *m as f64).powi(n as i32)).collect();
+            let sum: f64 = exact.iter().sum();
+            let exact_mean = exact.iter().zip(&e.grid).map(|(x, m)| x * *m as f64).sum::<f64>() / sum;
+            let underflows = n < POWER_TABLE && product_sums(&pdf, &e.powers[n * k..(n + 1) * k], &e.grid).0 <= MIN_SUM;
+            assert_eq!(underflows, n >= 30 && n < POWER_TABLE, "n = {n}: the test should reach both paths");
+            // Multiplied in...
+            let mut p = pdf.clone();
+            let mean = e.multiply_passes(&mut p, n).unwrap() as f64;
+            assert!((mean - exact_mean).abs() < 1e-5, "n = {n}: {mean} vs {exact_mean}");
+            let psum: f64 = p.iter().map(|x| *x as f64).sum();
+            assert!((psum - 1.0).abs() < 1e-5 && p.iter().all(|x| x.is_finite() && *x >= 0.0), "n = {n}");
+            // ... or pending (below the lazy cap), read through.
+            if n < LAZY_PASSES {
+                let mut b = CrmBrick::new();
+                b.index_or_insert(0, k);
+                b.pdfs.copy_from_slice(&pdf);
+                b.pending[0] = n as u8;
+                assert!((e.mean(&b, 0) as f64 - exact_mean).abs() < 1e-5, "n = {n}");
+                assert!((e.moments(&b, 0).0 - exact_mean).abs() < 1e-5, "n = {n}");
+            }
+        }
+        // A pdf all at m = 1 has nothing left after a pass.
+        let mut p = vec![0f32; k];
+        p[k - 1] = 1.0;
+        assert_eq!(e.multiply_passes(&mut p, 3), None);
     }
 
     #[test]

@@ -432,8 +432,6 @@ struct Corner {
     x: f64,
     y: f64,
     z: f64,
-    /// Squared distance from the camera.
-    far2: f64,
     /// Pixel coordinates (meaningless unless `z > 0`).
     u: f64,
     v: f64,
@@ -495,6 +493,11 @@ impl Box3 {
         (0..3).all(|a| self.hi[a] - self.lo[a] <= BRICK_EDGE)
     }
 }
+
+/// Indices `i + 3 j + 9 k` (`i`, `j`, `k` in {0, 1}, in octant order) in the 3 x 3 x 3 corner
+/// lattice of [`View::split_voxels`]: each octant's first corner, and each corner of a box
+/// relative to its first.
+const LOWER_CORNERS: [usize; 8] = [0, 1, 3, 4, 9, 10, 12, 13];
 
 /// The camera and the segments, ready to classify boxes.
 struct View<'a> {
@@ -605,18 +608,25 @@ impl<'a> View<'a> {
         let half = (b.hi[0] - b.lo[0]) / 2;
         let origin = self.corner_at(b.lo);
         let step = self.step.map(|s| s.map(|c| c * half as f64));
+        // Corner (i, j, k) of the 3 x 3 x 3 lattice is `lattice[i + 3 j + 9 k]` (nested loops:
+        // the index arithmetic of one loop over 27 was a twentieth of a projected frame).
         let mut lattice = [Corner::default(); 27];
-        for (n, corner) in lattice.iter_mut().enumerate() {
-            let (i, j, k) = ((n % 3) as f64, ((n / 3) % 3) as f64, (n / 9) as f64);
-            let p = |c: usize| origin[c] + i * step[0][c] + j * step[1][c] + k * step[2][c];
-            *corner = self.corner([p(0), p(1), p(2)]);
+        for k in 0..3 {
+            for j in 0..3 {
+                for i in 0..3 {
+                    let (fi, fj, fk) = (i as f64, j as f64, k as f64);
+                    let p = |c: usize| origin[c] + fi * step[0][c] + fj * step[1][c] + fk * step[2][c];
+                    lattice[i + 3 * j + 9 * k] = self.corner([p(0), p(1), p(2)]);
+                }
+            }
         }
-        for octant in 0..8 {
+        for (octant, first) in LOWER_CORNERS.into_iter().enumerate() {
             let (i, j, k) = (octant & 1, octant >> 1 & 1, octant >> 2);
             let lo = [b.lo[0] + i as i32 * half, b.lo[1] + j as i32 * half, b.lo[2] + k as i32 * half];
             let child = Box3 { lo, hi: lo.map(|x| x + half) };
-            let corners = (0..8).map(|c| &lattice[(i + (c & 1)) + 3 * (j + (c >> 1 & 1)) + 9 * (k + (c >> 2))]);
-            match self.judge(corners) {
+            let corners = LOWER_CORNERS.iter().map(|c| &lattice[first + c]);
+            // (Inside a brick that `split_voxels` was called for, every box is dense.)
+            match self.judge(corners, true) {
                 (Seen::None, _) => {}
                 (Seen::Some, Some(footprint)) if half == 1 => {
                     if self.voxel_crossed(lo, &footprint) {
@@ -648,14 +658,7 @@ impl<'a> View<'a> {
     #[inline]
     fn corner(&self, [x, y, z]: [f64; 3]) -> Corner {
         let inv_z = 1.0 / z; // only used when z > 0
-        Corner {
-            x,
-            y,
-            z,
-            far2: x * x + y * y + z * z,
-            u: self.fx * x * inv_z + self.cx,
-            v: self.fy * y * inv_z + self.cy,
-        }
+        Corner { x, y, z, u: self.fx * x * inv_z + self.cx, v: self.fy * y * inv_z + self.cy }
     }
 
     /// Classifies a box by projecting its corners and reading the depth pyramid; also gives
@@ -664,19 +667,23 @@ impl<'a> View<'a> {
         let corners: [Corner; 8] = std::array::from_fn(|i| {
             self.corner(self.corner_at(std::array::from_fn(|a| if i >> a & 1 == 1 { b.hi[a] } else { b.lo[a] })))
         });
-        self.judge(corners.iter())
+        self.judge(corners.iter(), false)
     }
 
-    /// [`View::classify`] for the box with these eight corners.
+    /// [`View::classify`] for the box with these eight corners; `known_dense` when the box is
+    /// known to lie within the dense range (inside a brick found dense), which skips that test.
     #[inline]
-    fn judge<'c>(&self, corners: impl Iterator<Item = &'c Corner> + Clone) -> (Seen, Option<Footprint>) {
-        let (mut z_near, mut z_far, mut far2) = (f64::INFINITY, f64::NEG_INFINITY, 0.0f64);
+    fn judge<'c>(
+        &self,
+        corners: impl Iterator<Item = &'c Corner> + Clone,
+        known_dense: bool,
+    ) -> (Seen, Option<Footprint>) {
+        let (mut z_near, mut z_far) = (f64::INFINITY, f64::NEG_INFINITY);
         let (mut u_min, mut u_max, mut v_min, mut v_max) =
             (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
         for c in corners.clone() {
             z_near = min(z_near, c.z);
             z_far = max(z_far, c.z);
-            far2 = max(far2, c.far2);
             (u_min, u_max, v_min, v_max) = (min(u_min, c.u), max(u_max, c.u), min(v_min, c.v), max(v_max, c.v));
         }
         if z_far <= 0.0 {
@@ -711,7 +718,7 @@ impl<'a> View<'a> {
         }
         // Every pixel that sees the box starts before it and ends behind it.
         let through = d.start_max <= z_near32 && d.end_min >= z_far32;
-        let dense = far2 <= self.dense_range2;
+        let dense = known_dense || corners.map(|c| c.x * c.x + c.y * c.y + c.z * c.z).all(|d2| d2 <= self.dense_range2);
         let seen = if inside_image && through && dense { Seen::All } else { Seen::Some };
         (seen, Some(Footprint { rect, z_near: z_near32, z_far: z_far32, dense }))
     }

@@ -49,7 +49,7 @@ pub fn run(a: Args) -> Result<()> {
     let held_out = HELD_OUT.min(dataset.len() - 1);
     let indices: Vec<usize> = (0..dataset.len()).filter(|&i| i != held_out).collect();
     println!("maps from {} views at {RESOLUTION} m; view {held_out} is held out and scored", indices.len());
-    println!("engine     time   occupied  held-out accuracy    MAE     AUC  files");
+    println!("engine     time   occupied  held-out accuracy    MAE     AUC  precision  recall  files");
     for &kind in EngineKind::ALL {
         let config = EngineConfig::new(kind, RESOLUTION);
         let t = Instant::now();
@@ -63,13 +63,15 @@ pub fn run(a: Args) -> Result<()> {
         let accuracy = super::eval::score(&Scorer::new(&report.map, params), &dataset, held_out)?.accuracy();
         let truth = truth_metrics(&report.map, &scene);
         println!(
-            "{:<9} {:>5.1} s  {:>9}  {:>17}  {:>5.3}  {:>6.3}  {}, {}",
+            "{:<9} {:>5.1} s  {:>9}  {:>17}  {:>5.3}  {:>6.3}  {:>9.3}  {:>6.3}  {}, {}",
             kind.name(),
             elapsed,
             report.map.occupied_count(),
             accuracy.map_or("-".into(), |a| format!("{a:.3}")),
             truth.mae,
             truth.auc,
+            truth.precision,
+            truth.recall,
             map_path.display(),
             ply_path.display()
         );
@@ -79,7 +81,10 @@ pub fn run(a: Args) -> Result<()> {
          most likely surface in the map lies within 5 cm of the true depth (`mrfmap eval --metric \
          reference`). MAE: mean |true occupancy - map occupancy| over the map's voxels (0 is \
          perfect). AUC: how well occupancy ranks occupied above free voxels (1 is perfect, 0.5 \
-         is chance). Open the PLY files in any point viewer (MeshLab, CloudCompare)."
+         is chance). precision: share of the occupied voxels that are at least half solid in the \
+         scene; recall: share of the map's at least half solid voxels that are occupied (for a \
+         planner thresholding at 0.5, 1 - precision is space blocked for nothing, 1 - recall \
+         obstacles missed). Open the PLY files in any point viewer (MeshLab, CloudCompare)."
     );
     Ok(())
 }

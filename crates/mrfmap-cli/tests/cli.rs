@@ -230,8 +230,16 @@ fn eval_loo_and_compare() {
     let slices = dir.join("slices");
     let o = run(&["eval", s(&map), "--scene", s(&dir.join("scene.toml")), "--slices", s(&slices), "--slice-z", "0.3"]);
     assert!(o.status.success(), "{}", stderr(&o));
-    assert!(stdout(&o).contains("ROC AUC"), "{}", stdout(&o));
+    assert!(stdout(&o).contains("ROC AUC") && stdout(&o).contains("precision"), "{}", stdout(&o));
     assert!(slices.join("slice_z0.3_ic.png").is_file());
+    // The JSON form carries the occupied voxels' precision and recall, as shares.
+    let o = run(&["eval", s(&map), "--scene", s(&dir.join("scene.toml")), "--json"]);
+    let json = stdout(&o);
+    for key in ["\"precision\": ", "\"recall\": "] {
+        let at = json.find(key).unwrap_or_else(|| panic!("no {key} in {json}")) + key.len();
+        let value: f64 = json[at..].split([',', '}']).next().unwrap().trim().parse().unwrap();
+        assert!((0.0..=1.0).contains(&value), "{key}{value} in {json}");
+    }
 
     let o = run(&["loo", s(&data), "--resolution", "0.1", "--views", "0,3", "-q"]);
     assert!(o.status.success(), "{}", stderr(&o));

@@ -129,7 +129,7 @@ const POWER_TABLE: usize = 64;
 
 /// A voxel's free passes are multiplied into its pdf once they reach this many (fewer stay
 /// pending; see [`CrmEngine::apply`]). Many passes at once can underflow every particle of a
-/// confident pdf in f32; [`CrmEngine::pass_weights`] then redoes them in logarithms.
+/// confident pdf in f32; [`CrmEngine::log_pass_weights`] then redoes them in logarithms.
 const LAZY_PASSES: usize = 48;
 
 /// One brick of the CRM map: the voxels allocated in it, each with a pdf, its mean, and
@@ -228,7 +228,7 @@ pub struct CrmEngine {
     grid: Vec<f32>,
     /// `(1 - m_k)^n` for `n < POWER_TABLE`, row-major by `n`.
     powers: Vec<f32>,
-    /// `ln(1 - m_k)`, for passes that underflow f32 (see [`CrmEngine::pass_weights`]).
+    /// `ln(1 - m_k)`, for passes that underflow f32 (see [`CrmEngine::log_pass_weights`]).
     log_free: Vec<f64>,
     limits: RayLimits,
     default_noise: Arc<NoiseModel>,
@@ -289,12 +289,12 @@ impl CrmEngine {
         // One loop in the common case (a map's export reads every voxel this way).
         let power = &self.powers[n * k..(n + 1) * k];
         pdf.iter().zip(power).zip(&self.grid).for_each(|((p, w), m)| add(&mut acc, *m, (*p * *w) as f64));
-        if !(acc[0] > MIN_SUM as f64 && acc[0].is_finite()) {
+        if n > 0 && !(acc[0] > MIN_SUM as f64 && acc[0].is_finite()) {
             acc = [0.0; 3];
             let mut each = |j: usize, p: f64| add(&mut acc, self.grid[j], p);
             // (Passes that leave nothing, only possible for a pdf all at m = 1, are ignored.)
-            if !self.pass_weights(pdf, n, &mut each) {
-                self.pass_weights(pdf, 0, &mut each);
+            if !self.log_pass_weights(pdf, n, &mut each) {
+                pdf.iter().enumerate().for_each(|(j, p)| each(j, *p as f64));
             }
         }
         let (mean, second) = (acc[1] / acc[0], acc[2] / acc[0]);
@@ -315,49 +315,34 @@ impl CrmEngine {
             return weighted / sum;
         }
         let (mut sum, mut weighted) = (0.0, 0.0);
-        let usable = self.pass_weights(pdf, n, |j, p| {
+        let usable = self.log_pass_weights(pdf, n, |j, p| {
             sum += p;
             weighted += self.grid[j] as f64 * p;
         });
         if usable { (weighted / sum) as f32 } else { b.means[i] }
     }
 
-    /// Calls `each(j, w_j)` with weights proportional to `pdf_j (1 - m_j)^n`: in f32 from the
-    /// power table where their sum stays above [`MIN_SUM`], else in logarithms relative to
-    /// the largest (a confident pdf near m = 1 underflows f32 after a few dozen passes).
-    /// False, with no calls, if nothing is left (every particle with mass is at m = 1).
-    fn pass_weights(&self, pdf: &[f32], n: usize, mut each: impl FnMut(usize, f64)) -> bool {
-        let k = self.particles();
-        if n == 0 {
-            pdf.iter().enumerate().for_each(|(j, p)| each(j, *p as f64)); // normalised already
-            return true;
-        }
-        if n < POWER_TABLE {
-            let power = &self.powers[n * k..(n + 1) * k];
-            let sum = product_sums(pdf, power, &self.grid).0;
-            if sum > MIN_SUM && sum.is_finite() {
-                pdf.iter().zip(power).enumerate().for_each(|(j, (p, w))| each(j, (*p * *w) as f64));
-                return true;
-            }
-        }
+    /// Calls `each(j, w_j)` with weights proportional to `pdf_j (1 - m_j)^n`, `n > 0`, computed
+    /// in logarithms relative to the largest: for passes whose product with the power table
+    /// underflows f32 (a confident pdf near m = 1 does after a few dozen passes; the callers
+    /// try the table first). False, with no calls, if nothing is left (every particle with
+    /// mass is at m = 1).
+    fn log_pass_weights(&self, pdf: &[f32], n: usize, mut each: impl FnMut(usize, f64)) -> bool {
+        // (At m = 1, `ln(1 - m)` is -inf and so is the weight, as `n > 0`.)
+        debug_assert!(n > 0);
         let log_weight = |j: usize| {
-            let p = pdf[j] as f64;
-            if p > 0.0 && (n == 0 || self.log_free[j].is_finite()) {
-                p.ln() + n as f64 * self.log_free[j]
-            } else {
-                f64::NEG_INFINITY
-            }
+            if pdf[j] > 0.0 { (pdf[j] as f64).ln() + n as f64 * self.log_free[j] } else { f64::NEG_INFINITY }
         };
-        let top = (0..k).map(log_weight).fold(f64::NEG_INFINITY, f64::max);
+        let top = (0..pdf.len()).map(log_weight).fold(f64::NEG_INFINITY, f64::max);
         if !top.is_finite() {
             return false;
         }
-        (0..k).for_each(|j| each(j, (log_weight(j) - top).exp()));
+        (0..pdf.len()).for_each(|j| each(j, (log_weight(j) - top).exp()));
         true
     }
 
     /// Multiplies `n` free passes, `(1 - m)^n`, into `p` and renormalises it; returns its mean,
-    /// or `None` (and `p` unchanged) if nothing would be left.
+    /// or `None` if nothing would be left (`p` is then to be restored by the caller).
     fn multiply_passes(&self, p: &mut [f32], n: usize) -> Option<f32> {
         let k = self.particles();
         let (mut left, mut mean) = (n, None);
@@ -368,7 +353,7 @@ impl CrmEngine {
             let (sum, weighted) = product_sums(p, power, &self.grid);
             if !(sum > MIN_SUM && sum.is_finite()) {
                 let before = p.to_vec();
-                if !self.pass_weights(&before, left, |j, w| p[j] = w as f32) {
+                if !self.log_pass_weights(&before, left, |j, w| p[j] = w as f32) {
                     return None;
                 }
                 return Some(scale_to_one(p, sums(p, &self.grid)));

@@ -256,6 +256,13 @@ impl Bounds {
         start_max: f32::INFINITY,
     };
 
+    /// No segment of these pixels reaches into camera depths `(z_near, z_far)`: they all end
+    /// before it or start behind it.
+    #[inline]
+    fn miss(&self, z_near: f32, z_far: f32) -> bool {
+        self.end_max <= z_near || self.start_min >= z_far
+    }
+
     fn union(self, o: Bounds) -> Bounds {
         Bounds {
             end_min: min(self.end_min, o.end_min),
@@ -714,7 +721,7 @@ impl<'a> View<'a> {
         };
         let d = self.seg.bounds(&rect);
         let (z_near32, z_far32) = (z_near as f32, z_far as f32);
-        if d.end_max <= z_near32 || d.start_min >= z_far32 {
+        if d.miss(z_near32, z_far32) {
             return (Seen::None, None);
         }
         // Every pixel that sees the box starts before it and ends behind it.
@@ -762,23 +769,18 @@ impl<'a> View<'a> {
         const K: usize = 2;
         let blocks = &self.seg.levels[K.min(self.seg.levels.len() - 1)];
         let k = K.min(self.seg.levels.len() - 1);
+        let (pixels, (z_near, z_far)) = (&self.seg.levels[0], (footprint.z_near, footprint.z_far));
         (rect.v0 >> k..(rect.v1 >> k) + 1).any(|bv| {
             (rect.u0 >> k..(rect.u1 >> k) + 1).any(|bu| {
-                let d = blocks.cells[bv * blocks.width + bu];
-                if d.end_max <= footprint.z_near || d.start_min >= footprint.z_far {
+                if blocks.cells[bv * blocks.width + bu].miss(z_near, z_far) {
                     return false;
                 }
                 let (v0, v1) = ((bv << k).max(rect.v0), ((bv + 1) << k).min(rect.v1 + 1));
                 let (u0, u1) = ((bu << k).max(rect.u0), ((bu + 1) << k).min(rect.u1 + 1));
                 // Each pixel's depths first: two compares where the slab test is a dozen
                 // operations, and most pixels here end in front of the voxel.
-                let depths = &self.seg.levels[0];
-                (v0..v1).any(|v| {
-                    (u0..u1).any(|u| {
-                        let d = &depths.cells[v * depths.width + u];
-                        d.end_max > footprint.z_near && d.start_min < footprint.z_far && crosses(u, v)
-                    })
-                })
+                (v0..v1)
+                    .any(|v| (u0..u1).any(|u| !pixels.cells[v * pixels.width + u].miss(z_near, z_far) && crosses(u, v)))
             })
         })
     }

@@ -965,3 +965,67 @@ fn ros2_bags_build_the_same_map_as_the_dataset() {
     let o = build(&cut, &m, &[depth[0], depth[1], "--fixed-frame", "map"]);
     assert!(!o.status.success() && stderr(&o).contains("MCAP"), "{}", stderr(&o));
 }
+
+/// Both metrics in one run, the biased target, the reference protocol in `loo` and `compare`,
+/// and the log-odds clamp: reported where a script reads them, bad values refused.
+#[test]
+fn protocols_targets_metrics_and_clamp() {
+    let dir = workdir("protocols");
+    let map = logodds_map(&dir);
+    let data = dir.join("data");
+    let o = run(&["eval", s(&map), s(&data), "--views", "1", "--metric", "algorithms,reference", "--json"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let json = stdout(&o);
+    assert!(
+        json.contains("\"metrics\": {\"algorithms\": {\"accuracy\"") && json.contains("\"reference\": {"),
+        "{json}"
+    );
+    // The biased target scores the same pixels (valid + invalid) against other depths.
+    let counts = |json: &str| -> usize {
+        ["\"valid\": ", "\"invalid\": "]
+            .iter()
+            .map(|k| json.split(k).nth(1).unwrap().split([',', '}']).next().unwrap().parse::<usize>().unwrap())
+            .sum()
+    };
+    let truth = stdout(&run(&["eval", s(&map), s(&data), "--views", "1", "--json"]));
+    let o = run(&["eval", s(&map), s(&data), "--views", "1", "--target", "biased", "--json"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(counts(&stdout(&o)), counts(&truth), "{} vs {truth}", stdout(&o));
+
+    let o = run(&["loo", s(&data), "--resolution", "0.1", "--views", "0", "--protocol", "reference", "--json", "-q"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(
+        stdout(&o).contains("\"protocol\": \"reference\"") && stdout(&o).contains("\"accuracy\""),
+        "{}",
+        stdout(&o)
+    );
+    let report = dir.join("report");
+    let o = run(&[
+        "compare",
+        s(&data),
+        "--resolutions",
+        "0.1",
+        "--views",
+        "1",
+        "--protocol",
+        "truth,reference",
+        "--metric",
+        "algorithms,reference",
+        "-o",
+        s(&report),
+        "-q",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let md = std::fs::read_to_string(report.join("report.md")).unwrap();
+    for heading in ["truth protocol, algorithms metric", "reference protocol, reference metric"] {
+        assert!(md.contains(heading), "no {heading:?} in {md}");
+    }
+    assert!(report.join("reference_logodds_0.1_view1_accuracy.png").is_file());
+    assert!(md.contains("--protocol truth,reference"), "{md}");
+
+    build_fails(&data, &["--clamp", "0.9,0.1"], &["clamp", "0 < MIN < MAX < 1"]);
+    // Without a noise model there is no bias to add.
+    std::fs::remove_file(data.join("noise.toml")).unwrap();
+    let o = run(&["eval", s(&map), s(&data), "--views", "1", "--target", "biased"]);
+    assert!(!o.status.success() && stderr(&o).contains("noise.toml"), "{}", stderr(&o));
+}

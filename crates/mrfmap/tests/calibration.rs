@@ -22,6 +22,7 @@ fn patchy_sensor() -> (Camera, NoiseModel) {
         bias: Poly([0.0; 3]),
         std: Poly([0.002, 0.0, 0.003]),
         patches: Some(PatchModel { size: 20, rows, cols, bias, std }),
+        likelihood_scale: 1.0,
     };
     (camera, noise)
 }

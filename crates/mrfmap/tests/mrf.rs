@@ -251,6 +251,7 @@ fn mrf_uses_per_patch_models_and_logodds_ignores_them() {
             bias: (0..12).map(|i| Poly([if i % 4 < 2 { 0.1 } else { 0.0 }, 0.0, 0.0])).collect(),
             std: vec![Poly([0.005, 0.0, 0.0]); 12],
         }),
+        likelihood_scale: 1.0,
     };
     let mut s = scene(&format!(
         "{SMALL_CAMERA}[[box]]\nmin = [2.0, -4.0, -1.0]\nmax = [2.3, 4.0, 1.0]\n\
@@ -475,4 +476,43 @@ fn weak_evidence_is_unknown() {
     eprintln!("{left_out} of {} voxels left out; MAE {mae_all:.4} -> {mae_kept:.4}", all.voxels.len());
     assert!(left_out > 0 && mae_kept < mae_all, "MAE {mae_all} -> {mae_kept}");
     assert!(MrfEngine::new(0.02, Default::default(), MrfParams { min_evidence: -1.0, ..Default::default() }).is_err());
+}
+
+/// A wall just outside the map's bounds is not pulled into them: a ray the bounds cut before
+/// its reading may have its surface anywhere outside, so it marks the voxels it crosses
+/// free instead of forcing a surface into the last of them. Without bounds the same rays
+/// mark the wall.
+#[test]
+fn a_surface_outside_the_bounds_is_not_pulled_into_them() {
+    use mrfmap::inference::Allocation;
+    use mrfmap::rays::{Aabb, RayLimits};
+    let s = scene(&format!(
+        "{SMALL_CAMERA}[noise]\nbias = [0.0]\nstd = [0.03]\n[[box]]\nmin = [2.02, -4.0, -1.0]\nmax = [2.3, 4.0, 1.0]\n\
+         [[view]]\neye = [0.0, 0.0, 0.0]\ntarget = [1.0, 0.0, 0.0]\n"
+    ));
+    let pose = look_at([0.0, 0.01, 0.013].into(), [1.0, 0.01, 0.013].into()).unwrap();
+    let fr = frames(&s, &[pose], Some(7));
+    let r = 0.05;
+    let build = |bounds: Option<Aabb>| {
+        let params = MrfParams { allocation: Allocation::Full, ..MrfParams::default() };
+        let mut e = MrfEngine::new(r, RayLimits { max_range: None, bounds }, params).unwrap();
+        e.add_keyframe(fr[0].clone()).unwrap();
+        e.run_until(1e-3, 20);
+        e
+    };
+    // Central columns (y, z) of the view; the wall's face is in voxel x = 40, [2.0, 2.05).
+    let columns: Vec<(i32, i32)> = (-8..8).flat_map(|y| (-6..6).map(move |z| (y, z))).collect();
+    let open = build(None);
+    let walled = columns
+        .iter()
+        .filter(|(y, z)| (39..=41).any(|x| open.marginal(VoxelKey([x, *y, *z])).is_some_and(|p| p > 0.5)))
+        .count();
+    assert!(walled as f64 >= 0.7 * columns.len() as f64, "without bounds: {walled} of {} columns", columns.len());
+    // Bounds end at x = 1.85 m, 5.7 std before the face: the last voxel inside, [1.80, 1.85),
+    // is free.
+    let cut = build(Some(Aabb::new([-1.0, -4.0, -2.0], [1.85, 4.0, 2.0]).unwrap()));
+    for (y, z) in &columns {
+        let p = cut.marginal(VoxelKey([36, *y, *z]));
+        assert!(p.is_some_and(|p| p < 0.1), "column ({y}, {z}): last voxel inside the bounds at {p:?}");
+    }
 }

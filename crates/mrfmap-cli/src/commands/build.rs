@@ -73,6 +73,21 @@ pub struct MapOptions {
     /// into the image (project, faster) or by walking every ray (walk); same map.
     #[arg(long, default_value = "project", value_parser = ["project", "walk"])]
     pub marking: String,
+    /// Log-odds: clamping thresholds as probabilities, "MIN,MAX" (default: OctoMap's
+    /// 0.1192,0.971).
+    #[arg(long, value_parser = parse_clamp)]
+    pub clamp: Option<(f64, f64)>,
+}
+
+/// clap parser for `--clamp MIN,MAX`: two probabilities with `0 < MIN < MAX < 1`.
+fn parse_clamp(s: &str) -> Result<(f64, f64), String> {
+    let (lo, hi) = s.split_once(',').ok_or("expected MIN,MAX")?;
+    let lo: f64 = lo.trim().parse().map_err(|e| format!("MIN: {e}"))?;
+    let hi: f64 = hi.trim().parse().map_err(|e| format!("MAX: {e}"))?;
+    if !(lo > 0.0 && lo < hi && hi < 1.0) {
+        return Err(format!("need 0 < MIN < MAX < 1, got {lo},{hi}"));
+    }
+    Ok((lo, hi))
 }
 
 /// The log-odds marking named on the command line (`project` or `walk`).
@@ -103,7 +118,11 @@ impl MapOptions {
             kind,
             resolution,
             limits: RayLimits { max_range: self.max_range, bounds },
-            logodds: LogOddsParams { marking: marking(&self.marking), ..Default::default() },
+            logodds: {
+                let d = LogOddsParams::default();
+                let (clamp_min, clamp_max) = self.clamp.unwrap_or((d.clamp_min, d.clamp_max));
+                LogOddsParams { marking: marking(&self.marking), clamp_min, clamp_max, ..d }
+            },
             mrf: MrfParams {
                 prior: self.prior,
                 iterations,

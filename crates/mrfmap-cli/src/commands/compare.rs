@@ -10,8 +10,9 @@ use mrfmap::outputs::PeakRule;
 use mrfmap::outputs::pictures::write_text;
 
 use super::build::{MapOptions, check_indices};
-use super::eval::{MetricOptions, mean_std, write_view_pictures};
+use super::eval::{MetricOptions, mean_std, metric_name, write_view_pictures};
 use super::loo::leave_one_out;
+use super::protocol::Protocol;
 use super::views::Views;
 
 #[derive(clap::Args)]
@@ -38,6 +39,11 @@ pub struct Args {
     /// Pixel "u,v" whose ray is plotted (default: the image centre).
     #[arg(long, value_parser = super::eval::parse_pixel)]
     pixel: Option<(u32, u32)>,
+    /// Experiment protocols, each a table per metric: `truth` (the dataset's noise model;
+    /// scored against gt_depth/) and/or `reference` (the MRFMap reference implementation's
+    /// coffin-world set-up; README, "Protocols").
+    #[arg(long, value_enum, value_delimiter = ',', default_value = "truth")]
+    protocol: Vec<Protocol>,
     #[command(flatten)]
     options: MapOptions,
     #[command(flatten)]
@@ -69,8 +75,16 @@ fn extra_flags(a: &Args) -> String {
     if a.metric.paper_boundary {
         f.push_str(" --paper-boundary");
     }
-    if a.metric.metric == PeakRule::Exit {
-        f.push_str(" --metric reference");
+    if a.metric.metric != [PeakRule::Entry] {
+        let m: Vec<&str> = a.metric.metric.iter().map(|r| metric_name(*r)).collect();
+        let _ = write!(f, " --metric {}", m.join(","));
+    }
+    if let Some(t) = a.metric.target {
+        let _ = write!(f, " --target {}", if t == super::views::Target::Biased { "biased" } else { "truth" });
+    }
+    if a.protocol != [Protocol::Truth] {
+        let p: Vec<&str> = a.protocol.iter().map(|p| p.name()).collect();
+        let _ = write!(f, " --protocol {}", p.join(","));
     }
     f
 }
@@ -86,60 +100,97 @@ pub fn run(a: Args) -> Result<()> {
     std::fs::create_dir_all(&a.output).with_context(|| format!("creating {}", a.output.display()))?;
     let frames = dataset.frames()?;
 
-    let mut table = String::from("| engine |");
-    for r in &a.resolutions {
-        let _ = write!(table, " {r} m |");
-    }
-    table.push_str("\n|---|");
-    table.push_str(&"---|".repeat(a.resolutions.len()));
-    table.push('\n');
+    // One table per protocol and metric: engines down, resolutions across.
+    let header = {
+        let mut h = String::from("| engine |");
+        for r in &a.resolutions {
+            let _ = write!(h, " {r} m |");
+        }
+        h.push_str("\n|---|");
+        h.push_str(&"---|".repeat(a.resolutions.len()));
+        h.push('\n');
+        h
+    };
+    let mut tables = vec![vec![header; a.metric.metric.len()]; a.protocol.len()];
     let mut pictures = String::new();
-    for &kind in &kinds {
-        let _ = write!(table, "| {kind} |");
-        for &r in &a.resolutions {
-            let prefix = format!("{kind}_{r}_");
-            let mut files = Vec::new();
-            let scores =
-                leave_one_out(&dataset, &frames, &views, kind, r, &a.options, &a.metric, |view, scorer, s| {
-                    if view == picture_view {
-                        let tolerance = a.metric.tolerance();
-                        files = write_view_pictures(
-                            &a.output,
-                            &prefix,
-                            scorer,
-                            &dataset,
-                            (view, s),
-                            Some(pixel),
-                            tolerance,
-                        )?;
-                    }
-                    Ok(())
-                })?;
-            let accs: Vec<f64> = scores.iter().filter_map(|(_, s)| s.accuracy()).collect();
-            match mean_std(&accs) {
-                Some((m, sd)) => {
-                    let _ = write!(table, " {m:.3} +- {sd:.3} |");
-                }
-                None => table.push_str(" - |"),
+    for (p, &protocol) in a.protocol.iter().enumerate() {
+        for &kind in &kinds {
+            for t in &mut tables[p] {
+                let _ = write!(t, "| {kind} |");
             }
-            println!("{kind} {r} m: {}", mean_std(&accs).map_or("-".into(), |(m, sd)| format!("{m:.3} +- {sd:.3}")));
-            if !files.is_empty() {
-                let _ = writeln!(pictures, "\n### {kind}, {r} m\n");
-                for f in files {
-                    let name = f.file_name().unwrap().to_string_lossy();
-                    let _ = write!(pictures, "![{name}]({name}) ");
+            for &r in &a.resolutions {
+                let prefix = format!("{}_{kind}_{r}_", protocol.name());
+                let target = a.metric.target.unwrap_or(protocol.target());
+                let mut files = Vec::new();
+                let by_metric = leave_one_out(
+                    &dataset,
+                    &frames,
+                    &views,
+                    (kind, r),
+                    protocol,
+                    &a.options,
+                    &a.metric,
+                    |view, scorer, s| {
+                        if view == picture_view {
+                            let judged = (a.metric.tolerance(), target);
+                            files = write_view_pictures(
+                                &a.output,
+                                &prefix,
+                                scorer,
+                                &dataset,
+                                (view, s),
+                                Some(pixel),
+                                judged,
+                            )?;
+                        }
+                        Ok(())
+                    },
+                )?;
+                for (m, (rule, scores)) in by_metric.iter().enumerate() {
+                    let accs: Vec<f64> = scores.iter().filter_map(|(_, s)| s.accuracy()).collect();
+                    let cell = mean_std(&accs).map_or("-".into(), |(m, sd)| format!("{m:.3} +- {sd:.3}"));
+                    let _ = write!(tables[p][m], " {cell} |");
+                    println!("{} protocol, {} metric, {kind} {r} m: {cell}", protocol.name(), metric_name(*rule));
                 }
-                pictures.push('\n');
+                if !files.is_empty() {
+                    let _ = writeln!(pictures, "\n### {kind}, {r} m, {} protocol\n", protocol.name());
+                    for f in files {
+                        let name = f.file_name().unwrap().to_string_lossy();
+                        let _ = write!(pictures, "![{name}]({name}) ");
+                    }
+                    pictures.push('\n');
+                }
+            }
+            for t in &mut tables[p] {
+                t.push('\n');
             }
         }
-        table.push('\n');
+    }
+    let mut table = String::new();
+    for (p, protocol) in a.protocol.iter().enumerate() {
+        for (m, rule) in a.metric.metric.iter().enumerate() {
+            let _ = writeln!(
+                table,
+                "### {} protocol, {} metric ({})\n\n{}",
+                protocol.name(),
+                metric_name(*rule),
+                match rule {
+                    PeakRule::Entry => "docs/ALGORITHMS.md 6.1, peak at voxel entry",
+                    PeakRule::Exit => "the reference implementation's rule, peak at voxel exit, z-depth",
+                },
+                tables[p][m]
+            );
+        }
     }
     let report = format!(
         "# mrfmap comparison: {ds}\n\n\
-         Leave-one-out accuracy ({metric}): each view is held out in turn, a map is built from the\n\
-         other views' `depth/`, and the held-out view's `gt_depth/` (or `depth/`) is scored; mean +- sample std\n\
-         over {n} views. Tolerance {k} x {sigma} m; boundary rule: {rule}. Views: {views:?}.\n\n{table}\n\
-         ## Pictures: view {picture_view}, ray of pixel ({pu}, {pv})\n\n\
+         Leave-one-out accuracy: each view is held out in turn, a map is built from the other views'\n\
+         `depth/`, and the held-out view is scored; mean +- sample std over {n} views. Tolerance {k} x\n\
+         {sigma} m; boundary rule: {rule}. Views: {views:?}. Protocols (README, \"Protocols\"): `truth`\n\
+         builds with the dataset's noise model and scores against `gt_depth/` (or `depth/`);\n\
+         `reference` builds as the MRFMap reference implementation's coffin-world set-up and scores\n\
+         against `gt_depth/` plus the model's bias.\n\n{table}\n\
+         ## Pictures: view {picture_view}, ray of pixel ({pu}, {pv}), first metric\n\n\
          Accuracy images: yellow accurate, green inaccurate, purple invalid, black no depth. Ray plots: occupancy,\n\
          visibility and generating-surface density along the ray; purple line and band: held-out depth +- tolerance;\n\
          blue dashed: the map's most likely surface.\n{pictures}\n\
@@ -147,10 +198,6 @@ pub fn run(a: Args) -> Result<()> {
         ds = a.dataset.display(),
         n = views.len(),
         k = a.metric.k,
-        metric = match a.metric.metric {
-            PeakRule::Entry => "docs/ALGORITHMS.md 6.1, peak at voxel entry",
-            PeakRule::Exit => "the reference implementation's rule, peak at voxel exit, z-depth",
-        },
         sigma = a.metric.sigma,
         rule = if a.metric.paper_boundary {
             "the paper's (unstopped rays ending beyond the map are accurate)"

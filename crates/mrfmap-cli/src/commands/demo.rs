@@ -4,6 +4,7 @@ use std::io::Write;
 use std::path::PathBuf;
 use std::time::Instant;
 
+use super::views::Target;
 use anyhow::{Context, Result};
 use mrfmap::inference::{EngineConfig, EngineKind};
 use mrfmap::outputs::{AccuracyParams, PeakRule, PlyOptions, Scorer, truth_metrics, write_ply};
@@ -60,7 +61,8 @@ pub fn run(a: Args) -> Result<()> {
         report.map.save(&map_path)?;
         write_ply(&report.map, &ply_path, PlyOptions::occupied_only())?;
         let params = AccuracyParams { peak: PeakRule::Exit, ..AccuracyParams::for_map(&report.map) };
-        let accuracy = super::eval::score(&Scorer::new(&report.map, params), &dataset, held_out)?.accuracy();
+        let accuracy =
+            super::eval::score(&Scorer::new(&report.map, params), &dataset, held_out, Target::Truth)?.accuracy();
         let truth = truth_metrics(&report.map, &scene);
         println!(
             "{:<9} {:>5.1} s  {:>9}  {:>17}  {:>5.3}  {:>6.3}  {:>9.3}  {:>6.3}  {}, {}",

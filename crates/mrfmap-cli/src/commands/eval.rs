@@ -13,10 +13,10 @@ use mrfmap::outputs::{Scorer, TruthMetrics, ViewScore, truth_metrics};
 use mrfmap::source::Scene;
 
 use super::build::BagArgs;
-use super::views::Views;
+use super::views::{Target, Views};
 
 /// Options of the accuracy metric, shared by `eval`, `loo` and `compare`.
-#[derive(clap::Args, Clone, Copy)]
+#[derive(clap::Args, Clone)]
 pub struct MetricOptions {
     /// Tolerance unit of the accuracy metric (m).
     #[arg(long, default_value_t = 0.05, value_parser = super::positive)]
@@ -31,9 +31,14 @@ pub struct MetricOptions {
     /// Where a ray's most likely surface is: `algorithms` (docs/ALGORITHMS.md 6.1: the entry of
     /// the voxel where the generating density peaks, compared as range) or `reference` (the
     /// reference implementation: the exit of the voxel with the largest mean density,
-    /// compared as z-depth).
-    #[arg(long, default_value = "algorithms")]
-    pub metric: PeakRule,
+    /// compared as z-depth). Several, comma-separated, score the same maps each way.
+    #[arg(long, value_delimiter = ',', default_value = "algorithms")]
+    pub metric: Vec<PeakRule>,
+    /// What held-out views are scored against: `truth` (their gt_depth/) or `biased` (gt_depth/
+    /// plus the dataset noise model's bias: what the sensor reads without noise, the MRFMap
+    /// reference implementation's target). Default: `truth`, or the `--protocol`'s.
+    #[arg(long, value_enum)]
+    pub target: Option<Target>,
 }
 
 impl MetricOptions {
@@ -42,15 +47,23 @@ impl MetricOptions {
         self.k * self.sigma
     }
 
-    /// Metric parameters for `map`.
-    pub fn params(&self, map: &Map) -> AccuracyParams {
+    /// Metric parameters for `map` with peak rule `peak`.
+    pub fn params(&self, map: &Map, peak: PeakRule) -> AccuracyParams {
         AccuracyParams {
             sigma: self.sigma,
             k: self.k,
             beyond_map_is_accurate: self.paper_boundary,
-            peak: self.metric,
+            peak,
             ..AccuracyParams::for_map(map)
         }
+    }
+}
+
+/// The command-line name of a peak rule.
+pub fn metric_name(rule: PeakRule) -> &'static str {
+    match rule {
+        PeakRule::Entry => "algorithms",
+        PeakRule::Exit => "reference",
     }
 }
 
@@ -94,8 +107,8 @@ pub fn parse_pixel(s: &str) -> Result<(u32, u32), String> {
 }
 
 /// Scores view `i` of `views` with `scorer`.
-pub fn score(scorer: &Scorer, views: &Views, i: usize) -> Result<ViewScore> {
-    let depth = views.held_out_depth(i)?;
+pub fn score(scorer: &Scorer, views: &Views, i: usize, target: Target) -> Result<ViewScore> {
+    let depth = views.held_out_depth(i, target)?;
     let t = std::time::Instant::now();
     let s = scorer.score_view(&views.camera(), &views.pose(i), &depth);
     tracing::debug!("view {i} scored in {:.0} ms", t.elapsed().as_secs_f64() * 1e3);
@@ -160,6 +173,19 @@ pub fn views_json(scores: &[(usize, ViewScore)]) -> String {
     format!("\"accuracy\": {}, \"views\": [{}]", json_number(mean_std(&accs).map(|m| m.0)), views.join(", "))
 }
 
+/// JSON fields of the scores under one or several metrics: one metric as [`views_json`]
+/// gives them; several as `"metrics": {"algorithms": {...}, "reference": {...}}`.
+pub fn metrics_json(by_metric: &[(PeakRule, Vec<(usize, ViewScore)>)]) -> String {
+    match by_metric {
+        [(_, scores)] => views_json(scores),
+        _ => {
+            let each: Vec<String> =
+                by_metric.iter().map(|(r, s)| format!("\"{}\": {{{}}}", metric_name(*r), views_json(s))).collect();
+            format!("\"metrics\": {{{}}}", each.join(", "))
+        }
+    }
+}
+
 /// A text table of scored views with the mean +- std line.
 pub fn views_table(scores: &[(usize, ViewScore)]) -> String {
     let mut t = String::from("view  accuracy  accurate     valid   invalid\n");
@@ -185,13 +211,13 @@ pub fn write_view_pictures(
     views: &Views,
     (view, score): (usize, &ViewScore),
     pixel: Option<(u32, u32)>,
-    tolerance: f64,
+    (tolerance, target): (f64, Target),
 ) -> Result<Vec<PathBuf>> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let mut written = vec![dir.join(format!("{prefix}view{view}_accuracy.png"))];
     write_accuracy_image(&written[0], score)?;
     if let Some((u, v)) = pixel {
-        let depth = views.held_out_depth(view)?;
+        let depth = views.held_out_depth(view, target)?;
         match scorer.ray_profile(&views.camera(), &views.pose(view), &depth, (u, v)) {
             Some((steps, verdict)) => {
                 let title = format!("{prefix}view {view}, pixel ({u}, {v}): {:?}", verdict.class);
@@ -229,29 +255,41 @@ pub fn run(a: Args) -> Result<()> {
         bail!("--slices needs --scene");
     }
     let map = Map::load(&a.map)?;
-    let scorer = Scorer::new(&map, a.metric.params(&map));
     let mut json_fields = Vec::new();
     if let Some(ds_path) = &a.dataset {
         let dataset = Views::open(ds_path, None, &a.bag)?;
         let views = if a.views.is_empty() { (0..dataset.len()).collect() } else { a.views.clone() };
         super::build::check_indices(dataset.len(), &views)?;
         warn_if_not_held_out(&map, ds_path, &views);
-        let bar = crate::progress::bar(views.len() as u64, "scoring");
-        let mut scores = Vec::new();
-        for &v in &views {
-            scores.push((v, score(&scorer, &dataset, v)?));
-            bar.inc(1);
-        }
-        bar.finish_and_clear();
-        if let Some(dir) = &a.images {
-            for (v, s) in &scores {
-                write_view_pictures(dir, "", &scorer, &dataset, (*v, s), a.pixel, a.metric.tolerance())?;
+        let target = a.metric.target.unwrap_or(Target::Truth);
+        let mut by_metric = Vec::new();
+        for &rule in &a.metric.metric {
+            let scorer = Scorer::new(&map, a.metric.params(&map, rule));
+            let bar = crate::progress::bar(views.len() as u64, "scoring");
+            let mut scores = Vec::new();
+            for &v in &views {
+                scores.push((v, score(&scorer, &dataset, v, target)?));
+                bar.inc(1);
             }
+            bar.finish_and_clear();
+            if let Some(dir) = &a.images {
+                let prefix = if a.metric.metric.len() > 1 { format!("{}_", metric_name(rule)) } else { String::new() };
+                for (v, s) in &scores {
+                    let judged = (a.metric.tolerance(), target);
+                    write_view_pictures(dir, &prefix, &scorer, &dataset, (*v, s), a.pixel, judged)?;
+                }
+            }
+            by_metric.push((rule, scores));
         }
         if a.json {
-            json_fields.push(views_json(&scores));
+            json_fields.push(metrics_json(&by_metric));
         } else {
-            print!("{}", views_table(&scores));
+            for (rule, scores) in &by_metric {
+                if by_metric.len() > 1 {
+                    println!("metric {}", metric_name(*rule));
+                }
+                print!("{}", views_table(scores));
+            }
         }
     }
     if let Some(scene_path) = &a.scene {

@@ -14,6 +14,7 @@ pub mod info;
 pub mod loo;
 pub mod noise;
 pub mod ops;
+pub mod protocol;
 pub mod query;
 pub mod scaling;
 pub mod simulate;

@@ -4,7 +4,7 @@
 
 use std::path::Path;
 
-use anyhow::Result;
+use anyhow::{Context, Result, bail};
 use mrfmap::frames::{Camera, DepthImage, Frame, Pose};
 use mrfmap::source::Dataset;
 
@@ -72,18 +72,40 @@ impl Views {
         }
     }
 
-    /// The depth view `i` is scored against: `gt_depth/` when the dataset has it, else the
-    /// view's own (noisy) depth.
-    pub fn held_out_depth(&self, i: usize) -> Result<DepthImage> {
-        match self {
-            Views::Dataset(d) => match d.truth_depth(i)? {
-                Some(truth) => Ok(truth),
-                None => {
+    /// The depth view `i` is scored against. [`Target::Truth`]: `gt_depth/` when the dataset
+    /// has it, else the view's own (noisy) depth. [`Target::Biased`]: `gt_depth/` plus the
+    /// noise model's bias, what the sensor reads without noise.
+    pub fn held_out_depth(&self, i: usize, target: Target) -> Result<DepthImage> {
+        let truth = match self {
+            Views::Dataset(d) => d.truth_depth(i)?,
+            Views::Bag(_) => None,
+        };
+        match (target, truth) {
+            (Target::Truth, Some(truth)) => Ok(truth),
+            (Target::Biased, Some(truth)) => {
+                let Views::Dataset(d) = self else { unreachable!("only datasets have gt_depth/") };
+                let noise = d.noise().with_context(|| {
+                    format!("{}: no noise.toml (or --noise) to take the biased target's bias from", d.root().display())
+                })?;
+                Ok(noise.biased(&truth))
+            }
+            (Target::Biased, None) => bail!("the biased target needs a dataset with gt_depth/"),
+            (Target::Truth, None) => {
+                if let Views::Dataset(d) = self {
                     tracing::warn!("{}: no gt_depth/, scoring against the noisy depth/ images", d.root().display());
-                    Ok(d.frame(i)?.depth)
                 }
-            },
-            Views::Bag(f) => Ok(f[i].depth.clone()),
+                Ok(self.frame(i)?.depth)
+            }
         }
     }
+}
+
+/// What a held-out view is scored against.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Target {
+    /// The true depth (`gt_depth/`; datasets without one: their own depth).
+    Truth,
+    /// The true depth plus the noise model's bias: what the sensor reads without noise (the
+    /// MRFMap reference implementation's coffin-world target).
+    Biased,
 }

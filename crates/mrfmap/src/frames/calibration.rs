@@ -282,6 +282,7 @@ impl Calibrator {
                 bias: polys.iter().map(|p| p.0).collect(),
                 std: polys.iter().map(|p| p.1).collect(),
             }),
+            likelihood_scale: 1.0,
         };
         Ok(Calibration { model, fits: kinds, bins: all_bins, samples: self.samples, outliers, images: self.images })
     }

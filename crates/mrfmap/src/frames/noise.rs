@@ -10,7 +10,7 @@ use std::path::Path;
 use serde::Deserialize;
 
 use crate::error::{Error, Result, parse_toml, read_text};
-use crate::frames::Camera;
+use crate::frames::{Camera, DepthImage};
 
 /// Standard deviations are clamped below at this value (metres), so a fitted polynomial that
 /// dips to zero or below never yields a degenerate Gaussian.
@@ -78,6 +78,12 @@ pub struct NoiseModel {
     pub std: Poly,
     /// Optional per-patch polynomials; when present they replace the aggregate.
     pub patches: Option<PatchModel>,
+    /// The likelihood's standard deviation over the model's (1, the default: the model as
+    /// fitted). The MRFMap reference implementation's coffin-world runs score with a
+    /// constant std of 0.05 m but a depth potential three times as wide (`3.0f *
+    /// get_depth_sigma` in its kernels), which this reproduces with 3. Only the likelihood
+    /// widens: rays still end 3 std (unscaled) past the measurement, as there.
+    pub likelihood_scale: f64,
 }
 
 #[derive(Deserialize)]
@@ -85,6 +91,7 @@ pub struct NoiseModel {
 struct NoiseFile {
     bias: Vec<f64>,
     std: Vec<f64>,
+    likelihood_scale: Option<f64>,
     patches: Option<PatchFile>,
 }
 
@@ -101,7 +108,7 @@ struct PatchFile {
 impl NoiseModel {
     /// One pair of polynomials for every pixel.
     pub fn aggregate(bias: Poly, std: Poly) -> Self {
-        NoiseModel { bias, std, patches: None }
+        NoiseModel { bias, std, patches: None, likelihood_scale: 1.0 }
     }
 
     /// Reads a `noise.toml` file.
@@ -135,6 +142,10 @@ impl NoiseModel {
                 std.0
             ));
         }
+        let likelihood_scale = f.likelihood_scale.unwrap_or(1.0);
+        if !(likelihood_scale.is_finite() && (0.01..=100.0).contains(&likelihood_scale)) {
+            return Err(format!("likelihood_scale must lie in [0.01, 100], got {likelihood_scale}"));
+        }
         let patches = match f.patches {
             None => None,
             Some(p) => {
@@ -164,7 +175,7 @@ impl NoiseModel {
                 })
             }
         };
-        Ok(NoiseModel { bias, std, patches })
+        Ok(NoiseModel { bias, std, patches, likelihood_scale })
     }
 
     /// Checks that the patch grid covers exactly the camera's image.
@@ -226,7 +237,33 @@ impl NoiseModel {
     #[inline]
     pub fn along_ray(&self, u: u32, v: u32, measured: f64) -> RayLikelihood<'_> {
         let (bias, std) = self.polys(u, v);
-        RayLikelihood { bias, std, measured, last: None }
+        RayLikelihood { bias, std, scale: self.likelihood_scale, measured, last: None }
+    }
+
+    /// What this sensor reads, without noise, where `truth` holds true z-depths: each valid
+    /// pixel's `z + bias(z)` (pixels with no return stay so). The MRFMap reference
+    /// implementation scores coffin-world against this target rather than the truth.
+    ///
+    /// ```
+    /// use mrfmap::frames::{DepthImage, NoiseModel, Poly};
+    /// let model = NoiseModel::aggregate(Poly([0.01, 0.0, 0.02]), Poly([0.01, 0.0, 0.0]));
+    /// let mut truth = DepthImage::new(2, 1);
+    /// truth.set(0, 0, 2.0);
+    /// let read = model.biased(&truth);
+    /// assert!((read.get(0, 0).unwrap() - 2.09).abs() < 1e-6);
+    /// assert_eq!(read.get(1, 0), None);
+    /// ```
+    pub fn biased(&self, truth: &DepthImage) -> DepthImage {
+        let mut out = truth.clone();
+        for v in 0..truth.height() {
+            for u in 0..truth.width() {
+                if let Some(z) = truth.get(u, v) {
+                    let z = f64::from(z);
+                    out.set(u, v, (z + self.polys(u, v).0.eval(z)) as f32);
+                }
+            }
+        }
+        out
     }
 
     /// The `noise.toml` text of this model.
@@ -237,6 +274,9 @@ impl NoiseModel {
              # Polynomials with ascending coefficients [c0, c1, c2].\n",
         );
         let _ = writeln!(s, "bias = {}\nstd = {}", poly(&self.bias), poly(&self.std));
+        if self.likelihood_scale != 1.0 {
+            let _ = writeln!(s, "likelihood_scale = {:?}", self.likelihood_scale);
+        }
         if let Some(p) = &self.patches {
             let _ = writeln!(s, "\n[patches]\nsize = {}\nrows = {}\ncols = {}", p.size, p.rows, p.cols);
             for (name, list) in [("bias", &p.bias), ("std", &p.std)] {
@@ -263,6 +303,8 @@ impl NoiseModel {
 pub struct RayLikelihood<'a> {
     bias: &'a Poly,
     std: &'a Poly,
+    /// [`NoiseModel::likelihood_scale`].
+    scale: f64,
     measured: f64,
     /// The last interval's far boundary: its z and what was computed there.
     last: Option<(f64, Boundary)>,
@@ -292,7 +334,7 @@ impl RayLikelihood<'_> {
     #[inline]
     fn boundary(&self, z: f64) -> Boundary {
         let w = z + self.bias.eval(z);
-        let sigma = self.std.eval(z).max(STD_FLOOR);
+        let sigma = self.std.eval(z).max(STD_FLOOR) * self.scale;
         Boundary { w, sigma, x: (w - self.measured) / sigma, tail: f64::NAN }
     }
 
@@ -407,6 +449,30 @@ mod tests {
                 bias: (0..n).map(|i| Poly([i as f64 * 0.001, 0.0, 0.0])).collect(),
                 std: (0..n).map(|i| Poly([0.002, i as f64 * 0.001, -1.0])).collect(),
             }),
+            likelihood_scale: 2.5,
+        }
+    }
+
+    /// A widened likelihood is the likelihood of a model with that much larger std, while
+    /// `bias_std` (where rays end) keeps the fitted std; bad scales are refused.
+    #[test]
+    fn likelihood_scale_widens_only_the_likelihood() {
+        let text = "bias = [0.01]\nstd = [0.05]\nlikelihood_scale = 3.0\n";
+        let wide = NoiseModel::from_toml(text, Path::new("n.toml")).unwrap();
+        let plain = NoiseModel::aggregate(Poly([0.01, 0.0, 0.0]), Poly([0.15, 0.0, 0.0]));
+        assert_eq!(wide.bias_std(3, 4, 2.0), (0.01, 0.05));
+        for (z0, z1) in [(1.5, 1.52), (1.9, 1.92), (2.2, 2.3), (2.6, 2.61)] {
+            let (a, b) = (wide.likelihood_over(3, 4, z0, z1, 2.0), plain.likelihood_over(3, 4, z0, z1, 2.0));
+            assert!((a - b).abs() <= 1e-12 * b.max(1e-300), "{z0}-{z1}: {a} vs {b}");
+        }
+        for bad in ["0.0", "-1.0", "1000.0", "nan"] {
+            let e = NoiseModel::from_toml(
+                &format!("bias = [0.0]\nstd = [0.01]\nlikelihood_scale = {bad}\n"),
+                Path::new("n.toml"),
+            )
+            .unwrap_err()
+            .to_string();
+            assert!(e.contains("n.toml") && e.contains("likelihood_scale"), "{e}");
         }
     }
 

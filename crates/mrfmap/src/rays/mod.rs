@@ -342,6 +342,15 @@ pub struct Segment {
     pub hits_surface: bool,
 }
 
+/// The z-depth where a forward-model ray ends when nothing cuts it: 3 std beyond the
+/// bias-corrected reading.
+#[inline]
+pub fn forward_model_end(ray: &PixelRay, noise: &NoiseModel) -> f64 {
+    let z = ray.range * ray.cz;
+    let (bias, std) = noise.bias_std(ray.u, ray.v, z);
+    (z - bias + 3.0 * std).max(0.5 * z)
+}
+
 impl RayLimits {
     /// Checks the limits themselves.
     pub fn validate(&self) -> crate::Result<()> {
@@ -364,10 +373,7 @@ impl RayLimits {
     /// the bias-corrected depth (where the sensor model stops carrying information), within
     /// the limits.
     pub fn forward_model_segment(&self, ray: &PixelRay, noise: &NoiseModel) -> Option<Segment> {
-        let z = ray.range * ray.cz;
-        let (bias, std) = noise.bias_std(ray.u, ray.v, z);
-        let z_end = (z - bias + 3.0 * std).max(0.5 * z);
-        self.segment(ray, z_end / ray.cz - ray.range)
+        self.segment(ray, forward_model_end(ray, noise) / ray.cz - ray.range)
     }
 
     /// The segment of `ray` from the camera to its surface (or `extra` metres past it, for

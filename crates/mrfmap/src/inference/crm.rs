@@ -426,12 +426,7 @@ impl CrmEngine {
                             nus.push(nu);
                             ControlFlow::Continue(())
                         });
-                        let beyond = if seg.hits_surface {
-                            let z_end = seg.end * ray.cz;
-                            likelihood.over(z_end, z_end + r * ray.cz)
-                        } else {
-                            1.0 // max range, no return or clipped: the light passed the whole segment
-                        };
+                        let beyond = seg.beyond(&ray, noise, &mut likelihood, r);
                         if window.is_empty() && beyond == 0.0 {
                             // The cause model carries no information (a surface beyond every
                             // voxel's likelihood, which the segment's end rules out in practice):

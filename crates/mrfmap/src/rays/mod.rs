@@ -20,7 +20,7 @@ pub use traversal::{Crossing, crossings, for_each_crossing};
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
-use crate::frames::{Camera, Frame, NoiseModel, Pose, RangeScan};
+use crate::frames::{Camera, Frame, NoiseModel, Pose, RangeScan, RayLikelihood};
 
 /// A world-space ray through one valid depth pixel (or one beam of a range scan).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -342,10 +342,31 @@ pub struct Segment {
     pub hits_surface: bool,
 }
 
+impl Segment {
+    /// The forward model's final term for `ray` traced over this segment: the likelihood
+    /// (density per metre, as [`RayLikelihood::over`]) of its reading if the surface lies past
+    /// the segment's end. Where the segment ends 3 std past the reading, the forward model over
+    /// one more voxel (`voxel` metres of range). Where the bounds or the max range cut it
+    /// short, the surface may lie anywhere outside the map up to that point: the forward model
+    /// averaged over the stretch cut off (with nothing there, a ray would force its surface
+    /// into the last voxels inside). A beam with no return: 1, the light passed it all.
+    pub fn beyond(&self, ray: &PixelRay, noise: &NoiseModel, likelihood: &mut RayLikelihood, voxel: f64) -> f64 {
+        let z_end = self.end * ray.cz;
+        let next = z_end + voxel * ray.cz;
+        if self.hits_surface {
+            return likelihood.over(z_end, next);
+        }
+        if !ray.returned {
+            return 1.0;
+        }
+        likelihood.over(z_end, forward_model_end(ray, noise).max(next))
+    }
+}
+
 /// The z-depth where a forward-model ray ends when nothing cuts it: 3 std beyond the
 /// bias-corrected reading.
 #[inline]
-pub fn forward_model_end(ray: &PixelRay, noise: &NoiseModel) -> f64 {
+fn forward_model_end(ray: &PixelRay, noise: &NoiseModel) -> f64 {
     let z = ray.range * ray.cz;
     let (bias, std) = noise.bias_std(ray.u, ray.v, z);
     (z - bias + 3.0 * std).max(0.5 * z)

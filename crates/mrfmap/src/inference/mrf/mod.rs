@@ -68,7 +68,7 @@ use crate::frames::{Frame, NoiseModel, Pose, default_noise_model};
 use crate::map::{
     BRICK_EDGE, BRICK_VOXELS, Brick, BrickKey, Grid, Map, MapVoxel, SlotMask, VoxelKey, mask_set, mask_slots,
 };
-use crate::rays::{FrameRays, RayLimits, for_each_crossing, forward_model_end, pose_parts};
+use crate::rays::{FrameRays, RayLimits, for_each_crossing, pose_parts};
 
 /// Which bricks a keyframe allocates.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -1090,21 +1090,9 @@ impl MrfEngine {
                 if scratch.ray.slots.is_empty() && scratch.ray.free.is_empty() {
                     continue;
                 }
-                let z_end = seg.end * ray.cz;
-                // The chance the surface lies past the segment: the forward model over one
-                // more voxel where the segment ends 3 std past the reading. Where the map's
-                // bounds or the max range cut the ray short, the surface may lie anywhere
-                // outside, up to where the ray would have ended: the forward model averaged
-                // over that stretch (with 0 the ray would force its surface into the last
-                // voxels it reaches, wherever the reading lies).
-                let far = forward_model_end(&ray, &kf.noise);
-                let beyond = if !seg.hits_surface && ray.returned && far > z_end {
-                    likelihood.over(z_end, far)
-                } else if seg.hits_surface {
-                    likelihood.over(z_end, z_end + r * ray.cz)
-                } else {
-                    0.0
-                };
+                // The chance the surface lies past the segment (outside the map where the
+                // bounds cut the ray short).
+                let beyond = seg.beyond(&ray, &kf.noise, &mut likelihood, r);
                 let ray_buf = &mut scratch.ray;
                 // The free stretch's message: 0 (clamped), unless the ray has no likelihood
                 // anywhere, beyond included, and says nothing (1/2).

@@ -16,8 +16,9 @@
 //! order, which cannot run in parallel), then each voxel multiplies in its factors in pixel
 //! order. Results do not depend on the number of threads. The final cause's likelihood is the
 //! forward model averaged over one voxel past the ray's truncation point (3 std beyond the
-//! bias-corrected depth), as in the MRF engine; beams with no return have no cause on the ray
-//! (every voxel's likelihood is 0) and pass it whole.
+//! bias-corrected depth), or over the stretch cut off where the bounds or the max range cut
+//! the ray short ([`crate::rays::Segment::beyond`], shared with the MRF engine); beams with no
+//! return have no cause on the ray (every voxel's likelihood is 0) and pass it whole.
 //!
 //! Why it is fast enough to use: along a ray, every voxel before the first one with any
 //! likelihood has the factor `1 - m` exactly (no cause before it, none on it), whatever its

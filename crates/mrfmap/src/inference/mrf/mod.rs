@@ -42,7 +42,9 @@
 //! far from surfaces stays unknown and rays skip it; [`Allocation::Full`] also allocates every
 //! brick a ray crosses from the camera on. Rays are truncated 3 std beyond the measurement
 //! (bias removed); the chance that the surface lies beyond that point is the ray's "beyond"
-//! term: the forward model averaged over one more voxel past the truncation. An allocated
+//! term: the forward model averaged over one more voxel past the truncation, or, where the
+//! map's bounds or the max range cut the ray short, over the stretch cut off (the surface is
+//! then outside the map; [`crate::rays::Segment::beyond`]). An allocated
 //! voxel whose belief the rays moved by less than [`MrfParams::min_evidence`] from the prior
 //! (behind surfaces, outside every view) is unknown: [`Engine::map`] leaves it out, so that a
 //! planner does not read a wall's unseen inside as "probably free".

@@ -515,4 +515,28 @@ mod tests {
         }
         assert!(Aabb::parse("0,0,0,-1,1,1").is_err());
     }
+
+    /// The final term: one voxel past a segment that ends 3 std past its reading; the stretch
+    /// cut off when the bounds end it before; 1 for a beam with no return.
+    #[test]
+    fn final_term_of_whole_cut_and_unreturned_rays() {
+        use crate::frames::Poly;
+        let noise = NoiseModel::aggregate(Poly([0.0; 3]), Poly([0.02, 0.0, 0.0]));
+        let ray =
+            |range, returned| PixelRay { u: 0, v: 0, origin: [0.0; 3], dir: [1.0, 0.0, 0.0], range, cz: 1.0, returned };
+        let term = |limits: RayLimits, ray: PixelRay| {
+            let seg = limits.forward_model_segment(&ray, &noise).unwrap();
+            (seg, seg.beyond(&ray, &noise, &mut noise.along_ray(0, 0, ray.range), 0.05))
+        };
+        let (seg, whole) = term(RayLimits::default(), ray(2.0, true));
+        assert!(seg.hits_surface && (seg.end - 2.06).abs() < 1e-12);
+        assert_eq!(whole, noise.likelihood_over(0, 0, 2.06, 2.11, 2.0));
+        // Bounds end at 1.9 m, 5 std before the reading: the surface lies in [1.9, 2.06].
+        let bounded = RayLimits { max_range: None, bounds: Some(Aabb::new([-1.0; 3], [1.9, 1.0, 1.0]).unwrap()) };
+        let (seg, cut) = term(bounded, ray(2.0, true));
+        assert!(!seg.hits_surface && (seg.end - 1.9).abs() < 1e-12);
+        let expected = noise.likelihood_over(0, 0, 1.9, 2.06, 2.0);
+        assert!((cut - expected).abs() < 1e-12 * expected && (cut * 0.16 - 0.99865).abs() < 1e-4, "{cut}"); // mass from -5 to +3 std
+        assert_eq!(term(RayLimits::default(), ray(3.0, false)).1, 1.0);
+    }
 }

@@ -72,6 +72,9 @@ fn extra_flags(a: &Args) -> String {
     if a.metric.k != 1.0 {
         let _ = write!(f, " --k {}", a.metric.k);
     }
+    if a.metric.sigma_model {
+        f.push_str(" --sigma-model");
+    }
     if a.metric.paper_boundary {
         f.push_str(" --paper-boundary");
     }
@@ -186,7 +189,7 @@ pub fn run(a: Args) -> Result<()> {
         "# mrfmap comparison: {ds}\n\n\
          Leave-one-out accuracy: each view is held out in turn, a map is built from the other views'\n\
          `depth/`, and the held-out view is scored; mean +- sample std over {n} views. Tolerance {k} x\n\
-         {sigma} m; boundary rule: {rule}. Views: {views:?}. Protocols (README, \"Protocols\"): `truth`\n\
+         {sigma}; boundary rule: {rule}. Views: {views:?}. Protocols (README, \"Protocols\"): `truth`\n\
          builds with the dataset's noise model and scores against `gt_depth/` (or `depth/`);\n\
          `reference` builds as the MRFMap reference implementation's coffin-world set-up and scores\n\
          against `gt_depth/` plus the model's bias.\n\n{table}\n\
@@ -198,7 +201,11 @@ pub fn run(a: Args) -> Result<()> {
         ds = a.dataset.display(),
         n = views.len(),
         k = a.metric.k,
-        sigma = a.metric.sigma,
+        sigma = if a.metric.sigma_model {
+            "the noise model's std at the peak".to_string()
+        } else {
+            format!("{} m", a.metric.sigma)
+        },
         rule = if a.metric.paper_boundary {
             "the paper's (unstopped rays ending beyond the map are accurate)"
         } else {

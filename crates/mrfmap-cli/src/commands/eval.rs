@@ -6,6 +6,7 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
+use mrfmap::frames::NoiseModel;
 use mrfmap::map::Map;
 use mrfmap::outputs::pictures::{ray_plot_svg, write_accuracy_image, write_text, write_truth_slices};
 use mrfmap::outputs::{AccuracyParams, PeakRule};
@@ -24,6 +25,11 @@ pub struct MetricOptions {
     /// Tolerance in units of sigma (the MRFMap paper's text uses 1.5, its code 1).
     #[arg(long, default_value_t = 1.0, value_parser = super::positive)]
     pub k: f64,
+    /// Tolerance k times the dataset noise model's std at the peak's depth for each pixel,
+    /// instead of k sigma (the reference implementation's rule when it models the sensor, as
+    /// the MRFMap paper's Table I describes).
+    #[arg(long)]
+    pub sigma_model: bool,
     /// The MRFMap paper's boundary rule: a ray the map does not stop, whose depth lies beyond
     /// the mapped part, counts as accurate (default: invalid, as docs/ALGORITHMS.md 6.1).
     #[arg(long)]
@@ -57,6 +63,17 @@ impl MetricOptions {
             ..AccuracyParams::for_map(map)
         }
     }
+}
+
+/// A scorer of `map` under `metric` with peak rule `rule`; `noise` is the dataset's model,
+/// which `--sigma-model` needs.
+pub fn scorer<'a>(map: &'a Map, metric: &MetricOptions, rule: PeakRule, noise: Option<&'a NoiseModel>) -> Result<Scorer<'a>> {
+    let scorer = Scorer::new(map, metric.params(map, rule));
+    if !metric.sigma_model {
+        return Ok(scorer);
+    }
+    let noise = noise.context("--sigma-model needs a noise model: the dataset has no noise.toml (give --noise)")?;
+    Ok(scorer.with_model_tolerance(noise))
 }
 
 /// The command-line name of a peak rule.
@@ -258,13 +275,14 @@ pub fn run(a: Args) -> Result<()> {
     let mut json_fields = Vec::new();
     if let Some(ds_path) = &a.dataset {
         let dataset = Views::open(ds_path, None, &a.bag)?;
+        let noise = dataset.noise();
         let views = if a.views.is_empty() { (0..dataset.len()).collect() } else { a.views.clone() };
         super::build::check_indices(dataset.len(), &views)?;
         warn_if_not_held_out(&map, ds_path, &views);
         let target = a.metric.target.unwrap_or(Target::Truth);
         let mut by_metric = Vec::new();
         for &rule in &a.metric.metric {
-            let scorer = Scorer::new(&map, a.metric.params(&map, rule));
+            let scorer = scorer(&map, &a.metric, rule, noise.as_deref())?;
             let bar = crate::progress::bar(views.len() as u64, "scoring");
             let mut scores = Vec::new();
             for &v in &views {

@@ -9,7 +9,7 @@ use mrfmap::inference::EngineKind;
 use mrfmap::outputs::{PeakRule, Scorer, ViewScore};
 
 use super::build::{BagArgs, MapOptions, build_map, check_indices};
-use super::eval::{MetricOptions, metric_name, metrics_json, score, views_table};
+use super::eval::{MetricOptions, metric_name, metrics_json, score, scorer, views_table};
 use super::protocol::Protocol;
 use super::views::Views;
 
@@ -60,13 +60,14 @@ pub fn leave_one_out(
     let config = protocol.options(options).config(kind, resolution)?;
     let frames = protocol.frames(frames);
     let target = metric.target.unwrap_or(protocol.target());
+    let noise = dataset.noise();
     let mut by_metric: Vec<(PeakRule, Vec<(usize, ViewScore)>)> =
         metric.metric.iter().map(|&r| (r, Vec::new())).collect();
     for &view in views {
         let others: Vec<usize> = (0..frames.len()).filter(|i| *i != view).collect();
         let report = build_map(&others, &config, |i| Ok(frames[i].clone()))?;
         for (n, (rule, scores)) in by_metric.iter_mut().enumerate() {
-            let scorer = Scorer::new(&report.map, metric.params(&report.map, *rule));
+            let scorer = scorer(&report.map, metric, *rule, noise.as_deref())?;
             let s = score(&scorer, dataset, view, target)?;
             tracing::info!(
                 "{kind} {resolution} m, {} protocol, view {view}: accuracy {:?} ({} metric)",

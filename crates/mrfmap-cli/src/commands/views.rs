@@ -3,9 +3,10 @@
 //! has one; a bag, like a dataset without one, against its own depth images.
 
 use std::path::Path;
+use std::sync::Arc;
 
 use anyhow::{Context, Result, bail};
-use mrfmap::frames::{Camera, DepthImage, Frame, Pose};
+use mrfmap::frames::{Camera, DepthImage, Frame, NoiseModel, Pose};
 use mrfmap::source::Dataset;
 
 use super::build::BagArgs;
@@ -45,6 +46,14 @@ impl Views {
         match self {
             Views::Dataset(d) => *d.camera(),
             Views::Bag(f) => f[0].camera,
+        }
+    }
+
+    /// The dataset's noise model (a bag's: its frames').
+    pub fn noise(&self) -> Option<Arc<NoiseModel>> {
+        match self {
+            Views::Dataset(d) => d.noise().cloned(),
+            Views::Bag(f) => f.first().and_then(|f| f.noise.clone()),
         }
     }
 

@@ -32,7 +32,7 @@ use std::ops::ControlFlow;
 
 use rayon::prelude::*;
 
-use crate::frames::{Camera, DepthImage, Pose};
+use crate::frames::{Camera, DepthImage, NoiseModel, Pose};
 use crate::map::{BRICK_EDGE, BRICK_VOXELS, BrickKey, Map, MapVoxel, OCCUPIED_THRESHOLD};
 use crate::rays::{Aabb, for_each_crossing, pixel_direction, pose_parts};
 
@@ -159,6 +159,8 @@ struct BrickSummary {
 pub struct Scorer<'a> {
     map: &'a Map,
     params: AccuracyParams,
+    /// With a model, the tolerance is `k` times its std at the peak ([`Scorer::with_model_tolerance`]).
+    noise: Option<&'a NoiseModel>,
     /// Allocated bricks' bounds (unallocated voxels inside read as empty); `None` for an empty map.
     bounds: Option<Aabb>,
     bricks: rustc_hash::FxHashMap<BrickKey, BrickSummary>,
@@ -184,19 +186,28 @@ impl<'a> Scorer<'a> {
                 (*k, BrickSummary { empty: brick_max == 0.0, full: b.len() == BRICK_VOXELS })
             })
             .collect();
-        Scorer { map, params, bounds, bricks, alpha_max: -(1.0 - p_max).ln() / r }
+        Scorer { map, params, noise: None, bounds, bricks, alpha_max: -(1.0 - p_max).ln() / r }
+    }
+
+    /// Judges against `k` times `noise`'s std at the peak's z-depth for the ray's pixel,
+    /// instead of `k sigma`: the reference implementation's tolerance (`get_depth_sigma(s)`)
+    /// when it models the sensor, as the MRFMap paper describes its Table I ("used during
+    /// inference and accuracy estimation").
+    pub fn with_model_tolerance(mut self, noise: &'a NoiseModel) -> Self {
+        self.noise = Some(noise);
+        self
     }
 
     /// Walks `origin + s dir` (unit `dir`) through the map and classifies it against the
     /// held-out range `r_d`; `cz` converts range to z-depth (the unit ray's z component in the
-    /// camera frame; [`PeakRule::Exit`] compares z-depths). `profile` receives every step (a
-    /// voxel, or a whole empty brick).
+    /// camera frame; [`PeakRule::Exit`] compares z-depths); `pixel` is the ray's, for a
+    /// per-patch tolerance. `profile` receives every step (a voxel, or a whole empty brick).
     pub fn classify_ray(
         &self,
         origin: [f64; 3],
         dir: [f64; 3],
-        r_d: f64,
-        cz: f64,
+        (r_d, cz): (f64, f64),
+        pixel: (u32, u32),
         mut profile: impl FnMut(ProfileStep),
     ) -> RayVerdict {
         let invalid = RayVerdict { class: PixelClass::Invalid, peak: None, range: r_d };
@@ -274,7 +285,11 @@ impl<'a> Scorer<'a> {
             PeakRule::Entry => (best.1 - r_d).abs(),
             PeakRule::Exit => (best.1 - r_d).abs() * cz,
         };
-        let accurate = miss <= self.params.k * self.params.sigma;
+        let sigma = match self.noise {
+            Some(noise) => noise.bias_std(pixel.0, pixel.1, best.1 * cz).1,
+            None => self.params.sigma,
+        };
+        let accurate = miss <= self.params.k * sigma;
         RayVerdict {
             class: if accurate { PixelClass::Accurate } else { PixelClass::Inaccurate },
             peak: Some(best.1),
@@ -293,7 +308,7 @@ impl<'a> Scorer<'a> {
                     None => PixelClass::NoDepth,
                     Some(z) => {
                         let (d, norm) = pixel_direction(camera, &rotation, u, v);
-                        self.classify_ray(origin, d, z as f64 * norm, 1.0 / norm, |_| {}).class
+                        self.classify_ray(origin, d, (z as f64 * norm, 1.0 / norm), (u, v), |_| {}).class
                     }
                 })
             })
@@ -325,7 +340,7 @@ impl<'a> Scorer<'a> {
         let (rotation, origin) = pose_parts(pose);
         let (d, norm) = pixel_direction(camera, &rotation, u, v);
         let mut steps = Vec::new();
-        let verdict = self.classify_ray(origin, d, z as f64 * norm, 1.0 / norm, |s| steps.push(s));
+        let verdict = self.classify_ray(origin, d, (z as f64 * norm, 1.0 / norm), (u, v), |s| steps.push(s));
         Some((steps, verdict))
     }
 }
@@ -418,11 +433,11 @@ mod tests {
         let mut map = Map::new("mrf", 0.1).unwrap();
         slab(&mut map, 0, 0.01);
         slab(&mut map, 20, 0.9);
-        let v = walk(&map).classify_ray(O, X, 2.03, 1.0, |_| {});
+        let v = walk(&map).classify_ray(O, X, (2.03, 1.0), (0, 0), |_| {});
         assert_eq!(v.class, PixelClass::Accurate);
         assert!((v.peak.unwrap() - 2.0).abs() < 1e-12);
         // 0.2 m further away than the wall: the map explains the ray wrongly.
-        assert_eq!(walk(&map).classify_ray(O, X, 2.25, 1.0, |_| {}).class, PixelClass::Inaccurate);
+        assert_eq!(walk(&map).classify_ray(O, X, (2.25, 1.0), (0, 0), |_| {}).class, PixelClass::Inaccurate);
     }
 
     #[test]
@@ -431,15 +446,46 @@ mod tests {
         slab(&mut map, 20, 0.9);
         let reference = Scorer::new(&map, AccuracyParams { peak: PeakRule::Exit, ..AccuracyParams::for_map(&map) });
         // The held-out surface at the wall voxel's far face: the entry rule misses by 0.1 m.
-        assert_eq!(walk(&map).classify_ray(O, X, 2.1, 1.0, |_| {}).class, PixelClass::Inaccurate);
-        let v = reference.classify_ray(O, X, 2.1, 1.0, |_| {});
+        assert_eq!(walk(&map).classify_ray(O, X, (2.1, 1.0), (0, 0), |_| {}).class, PixelClass::Inaccurate);
+        let v = reference.classify_ray(O, X, (2.1, 1.0), (0, 0), |_| {});
         assert_eq!(v.class, PixelClass::Accurate);
         assert!((v.peak.unwrap() - 2.1).abs() < 1e-12, "peak {:?}", v.peak);
         // 0.08 m of range is 0.04 m of z-depth on a ray at 60 degrees to the optical axis.
-        assert_eq!(reference.classify_ray(O, X, 2.18, 1.0, |_| {}).class, PixelClass::Inaccurate);
-        assert_eq!(reference.classify_ray(O, X, 2.18, 0.5, |_| {}).class, PixelClass::Accurate);
+        assert_eq!(reference.classify_ray(O, X, (2.18, 1.0), (0, 0), |_| {}).class, PixelClass::Inaccurate);
+        assert_eq!(reference.classify_ray(O, X, (2.18, 0.5), (0, 0), |_| {}).class, PixelClass::Accurate);
         assert_eq!("reference".parse::<PeakRule>(), Ok(PeakRule::Exit));
         assert!("exit".parse::<PeakRule>().is_err());
+    }
+
+    /// With a model tolerance the pixel's std at the peak's z-depth replaces sigma: a model
+    /// whose std grows with depth accepts a 0.08 m miss at 2.1 m (std 0.105), not at 1.1 m
+    /// (0.055), and a patch with a 0.01 m std rejects it.
+    #[test]
+    fn model_tolerance_is_the_pixels_std_at_the_peak() {
+        use crate::frames::{PatchModel, Poly};
+        // Left patch of a 2x1-patch image: std 0.05 z; right patch: 0.01 m.
+        let noise = NoiseModel {
+            patches: Some(PatchModel {
+                size: 10,
+                rows: 1,
+                cols: 2,
+                bias: vec![Poly::default(); 2],
+                std: vec![Poly([0.0, 0.05, 0.0]), Poly([0.01, 0.0, 0.0])],
+            }),
+            ..NoiseModel::aggregate(Poly::default(), Poly([0.05, 0.0, 0.0]))
+        };
+        let verdict = |index: i32, depth: f64, pixel: (u32, u32), model: bool| {
+            let mut map = Map::new("mrf", 0.1).unwrap();
+            slab(&mut map, index, 0.9);
+            let scorer = Scorer::new(&map, AccuracyParams { peak: PeakRule::Exit, ..AccuracyParams::for_map(&map) });
+            let scorer = if model { scorer.with_model_tolerance(&noise) } else { scorer };
+            scorer.classify_ray(O, X, (depth, 1.0), pixel, |_| {}).class
+        };
+        // Peak exits at 2.1 m and 1.1 m; held-out depths 0.08 m further.
+        assert_eq!(verdict(20, 2.18, (0, 0), true), PixelClass::Accurate);
+        assert_eq!(verdict(20, 2.18, (0, 0), false), PixelClass::Inaccurate, "constant 0.05 m");
+        assert_eq!(verdict(20, 2.18, (15, 0), true), PixelClass::Inaccurate, "the 0.01 m patch");
+        assert_eq!(verdict(10, 1.18, (0, 0), true), PixelClass::Inaccurate, "std 0.055 at 1.1 m");
     }
 
     #[test]
@@ -447,7 +493,7 @@ mod tests {
         let mut map = Map::new("mrf", 0.1).unwrap();
         slab(&mut map, 10, 0.8);
         slab(&mut map, 20, 0.99);
-        let v = walk(&map).classify_ray(O, X, 2.0, 1.0, |_| {});
+        let v = walk(&map).classify_ray(O, X, (2.0, 1.0), (0, 0), |_| {});
         assert_eq!(v.class, PixelClass::Inaccurate);
         assert!((v.peak.unwrap() - 1.0).abs() < 1e-12);
     }
@@ -467,11 +513,11 @@ mod tests {
         for i in 0..15 {
             slab(&mut free, i, 0.001);
         }
-        assert_eq!(walk(&free).classify_ray(O, X, 1.0, 1.0, |_| {}).class, PixelClass::Inaccurate);
-        assert_eq!(walk(&free).classify_ray(O, X, 2.0, 1.0, |_| {}).class, PixelClass::Invalid);
+        assert_eq!(walk(&free).classify_ray(O, X, (1.0, 1.0), (0, 0), |_| {}).class, PixelClass::Inaccurate);
+        assert_eq!(walk(&free).classify_ray(O, X, (2.0, 1.0), (0, 0), |_| {}).class, PixelClass::Invalid);
         let paper = AccuracyParams { beyond_map_is_accurate: true, ..AccuracyParams::for_map(&free) };
-        assert_eq!(Scorer::new(&free, paper).classify_ray(O, X, 2.0, 1.0, |_| {}).class, PixelClass::Accurate);
-        assert_eq!(Scorer::new(&free, paper).classify_ray(O, X, 1.0, 1.0, |_| {}).class, PixelClass::Inaccurate);
+        assert_eq!(Scorer::new(&free, paper).classify_ray(O, X, (2.0, 1.0), (0, 0), |_| {}).class, PixelClass::Accurate);
+        assert_eq!(Scorer::new(&free, paper).classify_ray(O, X, (1.0, 1.0), (0, 0), |_| {}).class, PixelClass::Inaccurate);
     }
 
     #[test]
@@ -481,7 +527,7 @@ mod tests {
         slab(&mut map, 20, 0.8);
         let params = AccuracyParams::for_map(&map);
         assert_eq!(params.empty_at_or_below, Some(0.5));
-        let v = Scorer::new(&map, params).classify_ray(O, X, 2.02, 1.0, |_| {});
+        let v = Scorer::new(&map, params).classify_ray(O, X, (2.02, 1.0), (0, 0), |_| {});
         assert_eq!(v.class, PixelClass::Accurate);
     }
 
@@ -497,7 +543,7 @@ mod tests {
         let dir = [0.6, 0.8, 0.0];
         let origin = [0.5 - 0.06, 0.075 - 0.08, 0.05];
         let mut steps = Vec::new();
-        walk(&map).classify_ray(origin, dir, 1.0, 1.0, |s| steps.push(s));
+        walk(&map).classify_ray(origin, dir, (1.0, 1.0), (0, 0), |s| steps.push(s));
         let s = steps.iter().find(|s| s.occupancy > 0.0).unwrap();
         let fraction = (s.s_out - s.s_in) / 0.1;
         assert!((fraction - 0.3125).abs() < 1e-9, "fraction {fraction}");
@@ -522,7 +568,7 @@ mod tests {
             let n = dir.iter().map(|d| d * d).sum::<f64>().sqrt();
             dir = dir.map(|d| d / n);
             let mut steps = Vec::new();
-            w.classify_ray(origin, dir, 100.0, 1.0, |s| steps.push(s));
+            w.classify_ray(origin, dir, (100.0, 1.0), (0, 0), |s| steps.push(s));
             // Integrate alpha by midpoint sampling from the walk's start to each step's entry.
             let h = 1e-5;
             let mut integral = 0.0f64;

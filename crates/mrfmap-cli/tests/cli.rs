@@ -1024,8 +1024,17 @@ fn protocols_targets_metrics_and_clamp() {
     assert!(md.contains("--protocol truth,reference"), "{md}");
 
     build_fails(&data, &["--clamp", "0.9,0.1"], &["clamp", "0 < MIN < MAX < 1"]);
-    // Without a noise model there is no bias to add.
+    // The model's std (2-10 mm here) as the tolerance is stricter than 5 cm: fewer accurate.
+    let accurate = |json: &str| -> usize {
+        json.split("\"accurate\": ").nth(1).unwrap().split(',').next().unwrap().parse().unwrap()
+    };
+    let o = run(&["eval", s(&map), s(&data), "--views", "1", "--sigma-model", "--json"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(accurate(&stdout(&o)) < accurate(&truth), "{} vs {truth}", stdout(&o));
+    // Without a noise model there is no bias to add and no std to judge by.
     std::fs::remove_file(data.join("noise.toml")).unwrap();
     let o = run(&["eval", s(&map), s(&data), "--views", "1", "--target", "biased"]);
     assert!(!o.status.success() && stderr(&o).contains("noise.toml"), "{}", stderr(&o));
+    let o = run(&["eval", s(&map), s(&data), "--views", "1", "--sigma-model"]);
+    assert!(!o.status.success() && stderr(&o).contains("--sigma-model needs a noise model"), "{}", stderr(&o));
 }

@@ -67,7 +67,12 @@ impl MetricOptions {
 
 /// A scorer of `map` under `metric` with peak rule `rule`; `noise` is the dataset's model,
 /// which `--sigma-model` needs.
-pub fn scorer<'a>(map: &'a Map, metric: &MetricOptions, rule: PeakRule, noise: Option<&'a NoiseModel>) -> Result<Scorer<'a>> {
+pub fn scorer<'a>(
+    map: &'a Map,
+    metric: &MetricOptions,
+    rule: PeakRule,
+    noise: Option<&'a NoiseModel>,
+) -> Result<Scorer<'a>> {
     let scorer = Scorer::new(map, metric.params(map, rule));
     if !metric.sigma_model {
         return Ok(scorer);

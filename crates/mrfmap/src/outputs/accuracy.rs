@@ -516,8 +516,14 @@ mod tests {
         assert_eq!(walk(&free).classify_ray(O, X, (1.0, 1.0), (0, 0), |_| {}).class, PixelClass::Inaccurate);
         assert_eq!(walk(&free).classify_ray(O, X, (2.0, 1.0), (0, 0), |_| {}).class, PixelClass::Invalid);
         let paper = AccuracyParams { beyond_map_is_accurate: true, ..AccuracyParams::for_map(&free) };
-        assert_eq!(Scorer::new(&free, paper).classify_ray(O, X, (2.0, 1.0), (0, 0), |_| {}).class, PixelClass::Accurate);
-        assert_eq!(Scorer::new(&free, paper).classify_ray(O, X, (1.0, 1.0), (0, 0), |_| {}).class, PixelClass::Inaccurate);
+        assert_eq!(
+            Scorer::new(&free, paper).classify_ray(O, X, (2.0, 1.0), (0, 0), |_| {}).class,
+            PixelClass::Accurate
+        );
+        assert_eq!(
+            Scorer::new(&free, paper).classify_ray(O, X, (1.0, 1.0), (0, 0), |_| {}).class,
+            PixelClass::Inaccurate
+        );
     }
 
     #[test]

@@ -515,4 +515,13 @@ fn a_surface_outside_the_bounds_is_not_pulled_into_them() {
         let p = cut.marginal(VoxelKey([36, *y, *z]));
         assert!(p.is_some_and(|p| p < 0.1), "column ({y}, {z}): last voxel inside the bounds at {p:?}");
     }
+    // A max range of 1.8 m cuts the same rays: readings beyond it only clear space.
+    let params = MrfParams { allocation: Allocation::Full, ..MrfParams::default() };
+    let mut short = MrfEngine::new(r, RayLimits { max_range: Some(1.8), bounds: None }, params).unwrap();
+    short.add_keyframe(fr[0].clone()).unwrap();
+    short.run_until(1e-3, 20);
+    for (y, z) in &columns {
+        let p = short.marginal(VoxelKey([34, *y, *z]));
+        assert!(p.is_some_and(|p| p < 0.01), "column ({y}, {z}): voxel before the max range at {p:?}");
+    }
 }

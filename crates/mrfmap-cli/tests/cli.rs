@@ -249,8 +249,8 @@ fn eval_loo_and_compare() {
     let o = run(&["compare", s(&data), "--resolutions", "0.1", "--views", "1", "-o", s(&report), "-q"]);
     assert!(o.status.success(), "{}", stderr(&o));
     let md = std::fs::read_to_string(report.join("report.md")).unwrap();
-    assert!(md.contains("| logodds |") && md.contains("logodds_0.1_view1_accuracy.png"), "{md}");
-    assert!(report.join("logodds_0.1_view1_accuracy.png").is_file());
+    assert!(md.contains("| logodds |") && md.contains("truth_logodds_0.1_view1_accuracy.png"), "{md}");
+    assert!(report.join("truth_logodds_0.1_view1_accuracy.png").is_file());
 
     // Errors: nothing to evaluate against, view out of range.
     let o = run(&["eval", s(&map)]);

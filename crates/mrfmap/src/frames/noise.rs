@@ -79,8 +79,8 @@ pub struct NoiseModel {
     /// Optional per-patch polynomials; when present they replace the aggregate.
     pub patches: Option<PatchModel>,
     /// The likelihood's standard deviation over the model's (1, the default: the model as
-    /// fitted). The MRFMap reference implementation's coffin-world runs score with a
-    /// constant std of 0.05 m but a depth potential three times as wide (`3.0f *
+    /// fitted). The MRFMap reference implementation's coffin-world configuration infers
+    /// with a constant std of 0.05 m but a depth potential three times as wide (`3.0f *
     /// get_depth_sigma` in its kernels), which this reproduces with 3. Only the likelihood
     /// widens: rays still end 3 std (unscaled) past the measurement, as there.
     pub likelihood_scale: f64,
@@ -293,7 +293,8 @@ impl NoiseModel {
 
 /// The forward model along one ray: the likelihood of each voxel in turn, where consecutive
 /// voxels share the boundary between them. The measurement given a surface at true z-depth `z`
-/// is `Normal(w(z), std(z)^2)` with `w(z) = z + bias(z)`; the probability of measuring within
+/// is `Normal(w(z), std(z)^2)` with `w(z) = z + bias(z)` (`std` times
+/// [`NoiseModel::likelihood_scale`]); the probability of measuring within
 /// the reading's resolution, for a surface uniform in `[z0, z1]`, is taken as the normal
 /// probability between the standardised boundaries `(measured - w(z)) / std(z)`, over
 /// `w(z1) - w(z0)`. So the probabilities of consecutive intervals add up exactly (they

@@ -10,7 +10,7 @@ use mrfmap::outputs::PeakRule;
 use mrfmap::outputs::pictures::write_text;
 
 use super::build::{MapOptions, check_indices};
-use super::eval::{MetricOptions, mean_std, metric_name, write_view_pictures};
+use super::eval::{MetricOptions, mean_std, write_view_pictures};
 use super::loo::leave_one_out;
 use super::protocol::Protocol;
 use super::views::Views;
@@ -79,11 +79,13 @@ fn extra_flags(a: &Args) -> String {
         f.push_str(" --paper-boundary");
     }
     if a.metric.metric != [PeakRule::Entry] {
-        let m: Vec<&str> = a.metric.metric.iter().map(|r| metric_name(*r)).collect();
+        let m: Vec<&str> = a.metric.metric.iter().map(|r| r.name()).collect();
         let _ = write!(f, " --metric {}", m.join(","));
     }
     if let Some(t) = a.metric.target {
-        let _ = write!(f, " --target {}", if t == super::views::Target::Biased { "biased" } else { "truth" });
+        if let Some(v) = clap::ValueEnum::to_possible_value(&t) {
+            let _ = write!(f, " --target {}", v.get_name());
+        }
     }
     if a.protocol != [Protocol::Truth] {
         let p: Vec<&str> = a.protocol.iter().map(|p| p.name()).collect();
@@ -123,7 +125,7 @@ pub fn run(a: Args) -> Result<()> {
             }
             for &r in &a.resolutions {
                 let prefix = format!("{}_{kind}_{r}_", protocol.name());
-                let target = a.metric.target.unwrap_or(protocol.target());
+                let target = a.metric.target(protocol);
                 let mut files = Vec::new();
                 let by_metric = leave_one_out(
                     &dataset,
@@ -153,7 +155,7 @@ pub fn run(a: Args) -> Result<()> {
                     let accs: Vec<f64> = scores.iter().filter_map(|(_, s)| s.accuracy()).collect();
                     let cell = mean_std(&accs).map_or("-".into(), |(m, sd)| format!("{m:.3} +- {sd:.3}"));
                     let _ = write!(tables[p][m], " {cell} |");
-                    println!("{} protocol, {} metric, {kind} {r} m: {cell}", protocol.name(), metric_name(*rule));
+                    println!("{} protocol, {} metric, {kind} {r} m: {cell}", protocol.name(), rule.name());
                 }
                 if !files.is_empty() {
                     let _ = writeln!(pictures, "\n### {kind}, {r} m, {} protocol\n", protocol.name());
@@ -176,7 +178,7 @@ pub fn run(a: Args) -> Result<()> {
                 table,
                 "### {} protocol, {} metric ({})\n\n{}",
                 protocol.name(),
-                metric_name(*rule),
+                rule.name(),
                 match rule {
                     PeakRule::Entry => "docs/ALGORITHMS.md 6.1, peak at voxel entry",
                     PeakRule::Exit => "the reference implementation's rule, peak at voxel exit, z-depth",

@@ -14,6 +14,7 @@ use mrfmap::outputs::{Scorer, TruthMetrics, ViewScore, truth_metrics};
 use mrfmap::source::Scene;
 
 use super::build::BagArgs;
+use super::protocol::Protocol;
 use super::views::{Target, Views};
 
 /// Options of the accuracy metric, shared by `eval`, `loo` and `compare`.
@@ -53,6 +54,11 @@ impl MetricOptions {
         self.k * self.sigma
     }
 
+    /// What held-out views are scored against under `protocol` (`--target` wins).
+    pub fn target(&self, protocol: Protocol) -> Target {
+        self.target.unwrap_or(protocol.target())
+    }
+
     /// Metric parameters for `map` with peak rule `peak`.
     pub fn params(&self, map: &Map, peak: PeakRule) -> AccuracyParams {
         AccuracyParams {
@@ -79,14 +85,6 @@ pub fn scorer<'a>(
     }
     let noise = noise.context("--sigma-model needs a noise model: the dataset has no noise.toml (give --noise)")?;
     Ok(scorer.with_model_tolerance(noise))
-}
-
-/// The command-line name of a peak rule.
-pub fn metric_name(rule: PeakRule) -> &'static str {
-    match rule {
-        PeakRule::Entry => "algorithms",
-        PeakRule::Exit => "reference",
-    }
 }
 
 #[derive(clap::Args)]
@@ -202,7 +200,7 @@ pub fn metrics_json(by_metric: &[(PeakRule, Vec<(usize, ViewScore)>)]) -> String
         [(_, scores)] => views_json(scores),
         _ => {
             let each: Vec<String> =
-                by_metric.iter().map(|(r, s)| format!("\"{}\": {{{}}}", metric_name(*r), views_json(s))).collect();
+                by_metric.iter().map(|(r, s)| format!("\"{}\": {{{}}}", r.name(), views_json(s))).collect();
             format!("\"metrics\": {{{}}}", each.join(", "))
         }
     }
@@ -284,7 +282,7 @@ pub fn run(a: Args) -> Result<()> {
         let views = if a.views.is_empty() { (0..dataset.len()).collect() } else { a.views.clone() };
         super::build::check_indices(dataset.len(), &views)?;
         warn_if_not_held_out(&map, ds_path, &views);
-        let target = a.metric.target.unwrap_or(Target::Truth);
+        let target = a.metric.target(Protocol::Truth);
         let mut by_metric = Vec::new();
         for &rule in &a.metric.metric {
             let scorer = scorer(&map, &a.metric, rule, noise.as_deref())?;
@@ -296,7 +294,7 @@ pub fn run(a: Args) -> Result<()> {
             }
             bar.finish_and_clear();
             if let Some(dir) = &a.images {
-                let prefix = if a.metric.metric.len() > 1 { format!("{}_", metric_name(rule)) } else { String::new() };
+                let prefix = if a.metric.metric.len() > 1 { format!("{}_", rule.name()) } else { String::new() };
                 for (v, s) in &scores {
                     let judged = (a.metric.tolerance(), target);
                     write_view_pictures(dir, &prefix, &scorer, &dataset, (*v, s), a.pixel, judged)?;
@@ -309,7 +307,7 @@ pub fn run(a: Args) -> Result<()> {
         } else {
             for (rule, scores) in &by_metric {
                 if by_metric.len() > 1 {
-                    println!("metric {}", metric_name(*rule));
+                    println!("metric {}", rule.name());
                 }
                 print!("{}", views_table(scores));
             }

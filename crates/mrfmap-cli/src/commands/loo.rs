@@ -9,7 +9,7 @@ use mrfmap::inference::EngineKind;
 use mrfmap::outputs::{PeakRule, Scorer, ViewScore};
 
 use super::build::{BagArgs, MapOptions, build_map, check_indices};
-use super::eval::{MetricOptions, metric_name, metrics_json, score, scorer, views_table};
+use super::eval::{MetricOptions, metrics_json, score, scorer, views_table};
 use super::protocol::Protocol;
 use super::views::Views;
 
@@ -59,7 +59,7 @@ pub fn leave_one_out(
 ) -> Result<Vec<(PeakRule, Vec<(usize, ViewScore)>)>> {
     let config = protocol.options(options).config(kind, resolution)?;
     let frames = protocol.frames(frames);
-    let target = metric.target.unwrap_or(protocol.target());
+    let target = metric.target(protocol);
     let noise = dataset.noise();
     let mut by_metric: Vec<(PeakRule, Vec<(usize, ViewScore)>)> =
         metric.metric.iter().map(|&r| (r, Vec::new())).collect();
@@ -73,7 +73,7 @@ pub fn leave_one_out(
                 "{kind} {resolution} m, {} protocol, view {view}: accuracy {:?} ({} metric)",
                 protocol.name(),
                 s.accuracy(),
-                metric_name(*rule)
+                rule.name()
             );
             if n == 0 {
                 on_view(view, &scorer, &s)?;
@@ -111,7 +111,7 @@ pub fn run(a: Args) -> Result<()> {
         println!("leave-one-out, engine {kind}, resolution {} m, {} protocol", a.resolution, a.protocol.name());
         for (rule, scores) in &by_metric {
             if by_metric.len() > 1 {
-                println!("metric {}", metric_name(*rule));
+                println!("metric {}", rule.name());
             }
             print!("{}", views_table(scores));
         }

@@ -3,6 +3,7 @@
 //! is reported under both (RESULTS.md): ours, and the reference implementation's as its
 //! public configuration for coffin-world sets it up.
 
+use std::borrow::Cow;
 use std::sync::Arc;
 
 use mrfmap::frames::{Frame, NoiseModel, Poly};
@@ -58,10 +59,14 @@ impl Protocol {
         }
     }
 
-    /// `frames` with this protocol's noise model.
-    pub fn frames(self, frames: &[Frame]) -> Vec<Frame> {
-        let noise = self.noise().map(Arc::new);
-        frames.iter().map(|f| Frame { noise: noise.clone().or_else(|| f.noise.clone()), ..f.clone() }).collect()
+    /// `frames` with this protocol's noise model (the frames themselves when it keeps theirs).
+    pub fn frames(self, frames: &[Frame]) -> Cow<'_, [Frame]> {
+        match self.noise().map(Arc::new) {
+            None => Cow::Borrowed(frames),
+            Some(noise) => {
+                Cow::Owned(frames.iter().map(|f| Frame { noise: Some(noise.clone()), ..f.clone() }).collect())
+            }
+        }
     }
 
     /// `options` with this protocol's log-odds clamp (where the user gave none).

@@ -85,25 +85,23 @@ impl Views {
     /// has it, else the view's own (noisy) depth. [`Target::Biased`]: `gt_depth/` plus the
     /// noise model's bias, what the sensor reads without noise.
     pub fn held_out_depth(&self, i: usize, target: Target) -> Result<DepthImage> {
-        let truth = match self {
-            Views::Dataset(d) => d.truth_depth(i)?,
-            Views::Bag(_) => None,
+        let d = match self {
+            Views::Dataset(d) => d,
+            Views::Bag(f) if target == Target::Truth => return Ok(f[i].depth.clone()),
+            Views::Bag(_) => bail!("the biased target needs a dataset with gt_depth/"),
         };
-        match (target, truth) {
+        match (target, d.truth_depth(i)?) {
             (Target::Truth, Some(truth)) => Ok(truth),
             (Target::Biased, Some(truth)) => {
-                let Views::Dataset(d) = self else { unreachable!("only datasets have gt_depth/") };
                 let noise = d.noise().with_context(|| {
                     format!("{}: no noise.toml (or --noise) to take the biased target's bias from", d.root().display())
                 })?;
                 Ok(noise.biased(&truth))
             }
-            (Target::Biased, None) => bail!("the biased target needs a dataset with gt_depth/"),
+            (Target::Biased, None) => bail!("{}: the biased target needs gt_depth/", d.root().display()),
             (Target::Truth, None) => {
-                if let Views::Dataset(d) = self {
-                    tracing::warn!("{}: no gt_depth/, scoring against the noisy depth/ images", d.root().display());
-                }
-                Ok(self.frame(i)?.depth)
+                tracing::warn!("{}: no gt_depth/, scoring against the noisy depth/ images", d.root().display());
+                Ok(d.frame(i)?.depth)
             }
         }
     }

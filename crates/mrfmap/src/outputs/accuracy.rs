@@ -69,15 +69,25 @@ pub enum PeakRule {
     Exit,
 }
 
+impl PeakRule {
+    /// Every rule with its command-line name.
+    const NAMED: [(PeakRule, &'static str); 2] = [(PeakRule::Entry, "algorithms"), (PeakRule::Exit, "reference")];
+
+    /// The command-line name (`--metric`): `algorithms` or `reference`.
+    pub fn name(self) -> &'static str {
+        Self::NAMED.iter().find(|(r, _)| *r == self).map_or("", |(_, n)| n)
+    }
+}
+
 impl std::str::FromStr for PeakRule {
     type Err = String;
 
     fn from_str(s: &str) -> Result<Self, String> {
-        match s {
-            "algorithms" => Ok(PeakRule::Entry),
-            "reference" => Ok(PeakRule::Exit),
-            _ => Err(format!("unknown metric {s:?}; available: algorithms, reference")),
-        }
+        Self::NAMED
+            .iter()
+            .find(|(_, n)| *n == s)
+            .map(|(r, _)| *r)
+            .ok_or_else(|| format!("unknown metric {s:?}; available: algorithms, reference"))
     }
 }
 
@@ -454,6 +464,7 @@ mod tests {
         assert_eq!(reference.classify_ray(O, X, (2.18, 1.0), (0, 0), |_| {}).class, PixelClass::Inaccurate);
         assert_eq!(reference.classify_ray(O, X, (2.18, 0.5), (0, 0), |_| {}).class, PixelClass::Accurate);
         assert_eq!("reference".parse::<PeakRule>(), Ok(PeakRule::Exit));
+        assert_eq!(PeakRule::Entry.name().parse::<PeakRule>(), Ok(PeakRule::Entry));
         assert!("exit".parse::<PeakRule>().is_err());
     }
 

@@ -626,6 +626,7 @@ impl MrfEngine {
             let seen = self.log.partition_point(|&(e, _)| e <= checked);
             self.log.drain(..seen);
             report.sweeps += 1;
+            tracing::debug!("sweep {}: {} tiles traced", sweep + 1, report.tiles - before);
             progress(sweep + 1, max_sweeps);
             if report.tiles == before {
                 report.converged = true;

@@ -1198,13 +1198,16 @@ struct VoxelAcc {
 }
 
 /// Per-tile buffers, reused across the tiles a thread traces.
-#[derive(Default)]
 struct TileScratch<'a> {
     voxels: Vec<VoxelAcc>,
     /// Per brick the tile's rays cross, its index in `tables` ([`UNALLOCATED`] for none).
     /// A tile's rays cross mostly the same bricks: this small table answers where the map's
     /// large one cost a cache miss per brick of every ray (13% of a trace).
     bricks: FxHashMap<BrickKey, u32>,
+    /// A direct-mapped cache in front of `bricks` (key, value), by a hash of the key. At
+    /// 0.01 m a ray crosses dozens of bricks and a tile's rays share most of them: probing
+    /// `bricks` for each was a fifth of a trace's profile.
+    recent: Box<[(BrickKey, u32); RECENT]>,
     /// The first `used` are in use (the rest are kept for reuse).
     tables: Vec<SlotTable<'a>>,
     used: usize,
@@ -1213,6 +1216,20 @@ struct TileScratch<'a> {
 
 /// [`TileScratch::bricks`] value of a brick that is not allocated.
 const UNALLOCATED: u32 = u32::MAX;
+
+/// Entries of [`TileScratch::recent`] (a power of two).
+const RECENT: usize = 512;
+
+/// A [`TileScratch::recent`] entry holding no brick (no ray reaches coordinates this far out).
+const NO_BRICK: BrickKey = BrickKey([i32::MIN; 3]);
+
+/// [`TileScratch::recent`]'s slot of brick `key`.
+#[inline]
+fn recent_slot(key: BrickKey) -> usize {
+    let [x, y, z] = key.0.map(|c| c as u32);
+    let h = x.wrapping_mul(0x9E37_79B1) ^ y.wrapping_mul(0x85EB_CA77) ^ z.wrapping_mul(0xC2B2_AE3D);
+    (h >> (32 - RECENT.trailing_zeros())) as usize
+}
 
 /// One brick's voxels among a tile's: its sums, per slot the index in
 /// [`TileScratch::voxels`] (`u32::MAX` for none), and which slots are set. A ray is traced
@@ -1225,6 +1242,19 @@ struct SlotTable<'a> {
     set: SlotMask,
 }
 
+impl Default for TileScratch<'_> {
+    fn default() -> Self {
+        TileScratch {
+            voxels: Vec::new(),
+            bricks: FxHashMap::default(),
+            recent: Box::new([(NO_BRICK, 0); RECENT]),
+            tables: Vec::new(),
+            used: 0,
+            ray: RayScratch::default(),
+        }
+    }
+}
+
 impl<'a> TileScratch<'a> {
     fn clear(&mut self) {
         for table in &mut self.tables[..self.used] {
@@ -1235,6 +1265,7 @@ impl<'a> TileScratch<'a> {
         }
         self.used = 0;
         self.bricks.clear();
+        self.recent.fill((NO_BRICK, 0));
         self.voxels.clear();
         self.ray.clear();
     }
@@ -1243,18 +1274,31 @@ impl<'a> TileScratch<'a> {
     /// (and has no table).
     #[inline]
     fn table_of(&mut self, key: BrickKey, grid: &'a Grid<f32>) -> Option<(usize, Option<&'a Brick<f32>>)> {
-        let t = match self.bricks.get(&key) {
-            Some(&t) => t,
-            None => {
-                let t = match grid.brick(key) {
-                    Some(sums) => self.add_table(key, Some(sums)),
-                    None => UNALLOCATED,
-                };
-                self.bricks.insert(key, t);
-                t
-            }
+        let slot = recent_slot(key);
+        let t = match self.recent[slot] {
+            (k, t) if k == key => t,
+            _ => match self.bricks.get(&key) {
+                Some(&t) => {
+                    self.recent[slot] = (key, t);
+                    t
+                }
+                None => {
+                    let t = match grid.brick(key) {
+                        Some(sums) => self.add_table(key, Some(sums)),
+                        None => UNALLOCATED,
+                    };
+                    self.remember(key, t);
+                    t
+                }
+            },
         };
         (t != UNALLOCATED).then(|| (t as usize, self.tables[t as usize].sums))
+    }
+
+    /// Records brick `key`'s table index `t` (or [`UNALLOCATED`]).
+    fn remember(&mut self, key: BrickKey, t: u32) {
+        self.bricks.insert(key, t);
+        self.recent[recent_slot(key)] = (key, t);
     }
 
     fn add_table(&mut self, key: BrickKey, sums: Option<&'a Brick<f32>>) -> u32 {
@@ -1275,7 +1319,7 @@ impl<'a> TileScratch<'a> {
             Some((t, _)) => t,
             None => {
                 let t = self.add_table(key.brick(), None);
-                self.bricks.insert(key.brick(), t);
+                self.remember(key.brick(), t);
                 t as usize
             }
         };

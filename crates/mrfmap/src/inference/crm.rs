@@ -45,7 +45,7 @@
 //! frames in `pdfs_stay_normalised_and_finite_over_many_updates`), not towards 0.
 
 use std::ops::ControlFlow;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 
 use rayon::prelude::*;
 use rustc_hash::FxHashMap;
@@ -53,9 +53,7 @@ use rustc_hash::FxHashMap;
 use super::Engine;
 use crate::error::{Error, Result};
 use crate::frames::{Frame, NoiseModel, RangeScan, default_noise_model};
-use crate::map::{
-    BRICK_VOXELS, BrickKey, BrickList, Map, MapVoxel, SlotMask, VoxelKey, check_resolution, mask_set, mask_slots,
-};
+use crate::map::{BRICK_VOXELS, BrickKey, BrickList, Map, MapVoxel, VoxelKey, check_resolution, mask_set, mask_slots};
 use crate::rays::{RayLimits, Rays, for_each_crossing};
 
 /// Means are kept in `[MEAN_EPS, 1 - MEAN_EPS]` inside the cause model.
@@ -182,63 +180,12 @@ impl CrmBrick {
 /// ray order.
 struct FrameBrick {
     passes: Box<[u32; BRICK_VOXELS]>,
-    /// The slots with passes or factors: the only ones read, merged and cleared.
-    touched: SlotMask,
     factors: Vec<(u16, f32, f32)>,
 }
 
 impl FrameBrick {
     fn new() -> Self {
-        FrameBrick { passes: Box::new([0; BRICK_VOXELS]), touched: [0; 8], factors: Vec::new() }
-    }
-
-    #[inline]
-    fn pass(&mut self, slot: usize) {
-        self.passes[slot] += 1;
-        mask_set(&mut self.touched, slot);
-    }
-
-    #[inline]
-    fn factor(&mut self, slot: usize, alpha: f32, beta: f32) {
-        self.factors.push((slot as u16, alpha, beta));
-        mask_set(&mut self.touched, slot);
-    }
-
-    /// Empty again, for [`Spare`]: only the touched slots are cleared.
-    fn clear(&mut self) {
-        for slot in mask_slots(&self.touched) {
-            self.passes[slot] = 0;
-        }
-        self.touched = [0; 8];
-        self.factors.clear();
-    }
-}
-
-/// Emptied [`FrameBrick`]s kept for the next frames. A new one is a zeroed 2 KiB table, and a
-/// scan of a planar laser log touches thousands of bricks, one layer of each: allocating,
-/// zeroing, merging and scanning whole tables was a fifth of a laser log's build.
-#[derive(Default)]
-struct Spare(Mutex<Vec<FrameBrick>>);
-
-/// Most [`FrameBrick`]s kept in [`Spare`] (2 KiB each).
-const SPARE_MAX: usize = 8192;
-
-/// [`FrameBrick`]s a block of rays takes from [`Spare`] at a time.
-const SPARE_BATCH: usize = 64;
-
-impl Spare {
-    /// Moves up to [`SPARE_BATCH`] spare bricks into `stash`.
-    fn take(&self, stash: &mut Vec<FrameBrick>) {
-        let mut spare = self.0.lock().unwrap_or_else(|e| e.into_inner());
-        let from = spare.len().saturating_sub(SPARE_BATCH);
-        stash.extend(spare.drain(from..));
-    }
-
-    /// Keeps emptied bricks, up to [`SPARE_MAX`].
-    fn give(&self, bricks: impl IntoIterator<Item = FrameBrick>) {
-        let mut spare = self.0.lock().unwrap_or_else(|e| e.into_inner());
-        let room = SPARE_MAX.saturating_sub(spare.len());
-        spare.extend(bricks.into_iter().take(room));
+        FrameBrick { passes: Box::new([0; BRICK_VOXELS]), factors: Vec::new() }
     }
 }
 
@@ -246,41 +193,24 @@ impl Spare {
 #[derive(Default)]
 struct FrameUpdates {
     bricks: BrickList<FrameBrick>,
-    /// Empty bricks to take before allocating new ones.
-    stash: Vec<FrameBrick>,
 }
 
 impl FrameUpdates {
     #[inline]
-    fn brick(&mut self, key: BrickKey, spare: &Spare) -> usize {
-        let stash = &mut self.stash;
-        self.bricks.index_or_insert_with(key, || {
-            if stash.is_empty() {
-                spare.take(stash);
-            }
-            stash.pop().unwrap_or_else(FrameBrick::new)
-        })
+    fn brick(&mut self, key: BrickKey) -> usize {
+        self.bricks.index_or_insert_with(key, FrameBrick::new)
     }
 
     /// Appends `other` (the rays after this block's), keeping ray order per brick.
-    fn merge(mut self, other: FrameUpdates, spare: &Spare) -> FrameUpdates {
-        let mut emptied = other.stash;
+    fn merge(mut self, other: FrameUpdates) -> FrameUpdates {
         for (key, b) in other.bricks.into_items() {
-            let mut b = Some(b);
-            let i = self.bricks.index_or_insert_with(key, || b.take().expect("taken once"));
-            let Some(mut b) = b else { continue }; // new here: moved in whole
+            let i = self.brick(key);
             let mine = self.bricks.value_mut(i);
-            for slot in mask_slots(&b.touched) {
-                mine.passes[slot] += b.passes[slot];
+            for (a, n) in mine.passes.iter_mut().zip(b.passes.iter()) {
+                *a += n;
             }
-            for (m, t) in mine.touched.iter_mut().zip(&b.touched) {
-                *m |= t;
-            }
-            mine.factors.extend(b.factors.drain(..));
-            b.clear();
-            emptied.push(b);
+            mine.factors.extend(b.factors);
         }
-        spare.give(emptied);
         self
     }
 }
@@ -294,7 +224,6 @@ impl FrameUpdates {
 /// ```
 pub struct CrmEngine {
     bricks: FxHashMap<BrickKey, CrmBrick>,
-    spare: Spare,
     resolution: f64,
     /// Particle positions `m_k = k / (K - 1)`.
     grid: Vec<f32>,
@@ -321,7 +250,6 @@ impl CrmEngine {
         let log_free = grid.iter().map(|m| (1.0 - *m as f64).ln()).collect();
         Ok(CrmEngine {
             bricks: FxHashMap::default(),
-            spare: Spare::default(),
             resolution,
             grid,
             powers,
@@ -459,7 +387,7 @@ impl CrmEngine {
                     match current {
                         Some((k, i)) if k == brick => i,
                         _ => {
-                            let i = up.brick(brick, &self.spare);
+                            let i = up.brick(brick);
                             current = Some((brick, i));
                             i
                         }
@@ -481,7 +409,7 @@ impl CrmEngine {
                                 // No cause weight here or before: the factor is exactly 1 - m,
                                 // whatever this voxel's mean, so it is only counted.
                                 let i = slot_of(&mut up, c.key);
-                                up.bricks.value_mut(i).pass(c.key.slot());
+                                up.bricks.value_mut(i).passes[c.key.slot()] += 1;
                                 return ControlFlow::Continue(());
                             }
                             let brick = c.key.brick();
@@ -524,9 +452,9 @@ impl CrmEngine {
                             }
                             let i = slot_of(&mut up, *key);
                             if (a + b).abs() <= FACTOR_EPS {
-                                up.bricks.value_mut(i).pass(key.slot()); // 1 - m to within FACTOR_EPS
+                                up.bricks.value_mut(i).passes[key.slot()] += 1; // 1 - m to within FACTOR_EPS
                             } else {
-                                up.bricks.value_mut(i).factor(key.slot(), a as f32, b as f32);
+                                up.bricks.value_mut(i).factors.push((key.slot() as u16, a as f32, b as f32));
                             }
                         }
                     }
@@ -534,7 +462,7 @@ impl CrmEngine {
                 up
             })
             .collect();
-        blocks.into_iter().reduce(|a, b| a.merge(b, &self.spare)).unwrap_or_default()
+        blocks.into_iter().reduce(FrameUpdates::merge).unwrap_or_default()
     }
 
     /// Multiplies a frame's factors into the pdfs, brick by brick in parallel.
@@ -551,80 +479,82 @@ impl CrmEngine {
             .collect();
         let engine = &*self;
         let grid = &engine.grid;
-        let uniform = vec![1.0 / k as f32; k];
-        work.par_iter_mut().for_each_init(
-            || vec![0f32; k],
-            |p, (_, brick, fb)| {
-                // Factors grouped by slot, ray order kept within a slot.
-                fb.factors.sort_by_key(|f| f.0);
-                let mut next_factor = 0;
-                for slot in mask_slots(&fb.touched) {
-                    let existing = brick.index(slot);
-                    let has_factors = fb.factors.get(next_factor).is_some_and(|f| f.0 as usize == slot);
-                    let mut n = fb.passes[slot] as usize;
-                    if let Some(i) = existing {
-                        // Free passes only (most voxels a frame touches) are counted, not
-                        // multiplied in: the pdf is read and written once per few dozen passes,
-                        // or when a factor or a ray's cause model needs it. The factors commute,
-                        // so this changes rounding only.
-                        let total = n + brick.pending[i] as usize;
-                        if !has_factors && total < LAZY_PASSES {
-                            brick.pending[i] = total as u8;
-                            continue;
-                        }
-                        n = total;
-                        brick.pending[i] = 0;
-                    }
-                    // The pdf before this frame, read in place (copying it was a fifth of a laser
-                    // log's build): the fallback if every particle underflows.
-                    let last: &[f32] = match existing {
-                        Some(i) => &brick.pdfs[i * k..(i + 1) * k],
-                        None => &uniform,
-                    };
-                    p.copy_from_slice(last);
-                    let mut mean = None;
-                    if n > 0 {
-                        mean = engine.multiply_passes(p, n);
-                        if mean.is_none() {
-                            p.copy_from_slice(last);
-                        }
-                    }
-                    // Factors are scaled to a maximum of 1, so a few of them in a row cannot
-                    // underflow: renormalise every few.
-                    let mut pending = 0;
-                    while next_factor < fb.factors.len() && fb.factors[next_factor].0 as usize == slot {
-                        let (_, alpha, beta) = fb.factors[next_factor];
-                        for (pj, m) in p.iter_mut().zip(grid) {
-                            *pj *= alpha * m + beta;
-                        }
-                        mean = None;
-                        pending += 1;
-                        if pending == RENORMALISE_EVERY {
-                            normalise(p, last, grid);
-                            pending = 0;
-                        }
-                        next_factor += 1;
-                    }
-                    let mean = mean.unwrap_or_else(|| normalise(p, last, grid));
-                    // A voxel seen for the first time whose evidence hardly moves it (voxels deep
-                    // behind a surface that noisy long readings reach) stays unknown instead of
-                    // entering the map at its prior.
-                    if existing.is_none() && (mean - 0.5).abs() < NEW_VOXEL_MIN_CHANGE {
+        work.par_iter_mut().for_each(|(_, brick, fb)| {
+            // Factors grouped by slot, ray order kept within a slot.
+            fb.factors.sort_by_key(|f| f.0);
+            let mut touched = [0u64; 8];
+            for (slot, n) in fb.passes.iter().enumerate() {
+                if *n > 0 {
+                    mask_set(&mut touched, slot);
+                }
+            }
+            for f in &fb.factors {
+                mask_set(&mut touched, f.0 as usize);
+            }
+            let mut next_factor = 0;
+            let (mut p, uniform) = (vec![0f32; k], vec![1.0 / k as f32; k]);
+            for slot in mask_slots(&touched) {
+                let existing = brick.index(slot);
+                let has_factors = fb.factors.get(next_factor).is_some_and(|f| f.0 as usize == slot);
+                let mut n = fb.passes[slot] as usize;
+                if let Some(i) = existing {
+                    // Free passes only (most voxels a frame touches) are counted, not
+                    // multiplied in: the pdf is read and written once per few dozen passes,
+                    // or when a factor or a ray's cause model needs it. The factors commute,
+                    // so this changes rounding only.
+                    let total = n + brick.pending[i] as usize;
+                    if !has_factors && total < LAZY_PASSES {
+                        brick.pending[i] = total as u8;
                         continue;
                     }
-                    let i = existing.unwrap_or_else(|| brick.index_or_insert(slot, k));
-                    brick.pdfs[i * k..(i + 1) * k].copy_from_slice(p);
-                    brick.means[i] = mean;
+                    n = total;
+                    brick.pending[i] = 0;
                 }
-                fb.clear();
-            },
-        );
-        let mut emptied = Vec::with_capacity(work.len().min(SPARE_MAX));
-        for (key, brick, fb) in work {
+                // The pdf before this frame, read in place (copying it was a fifth of a laser
+                // log's build): the fallback if every particle underflows.
+                let last: &[f32] = match existing {
+                    Some(i) => &brick.pdfs[i * k..(i + 1) * k],
+                    None => &uniform,
+                };
+                p.copy_from_slice(last);
+                let mut mean = None;
+                if n > 0 {
+                    mean = engine.multiply_passes(&mut p, n);
+                    if mean.is_none() {
+                        p.copy_from_slice(last);
+                    }
+                }
+                // Factors are scaled to a maximum of 1, so a few of them in a row cannot
+                // underflow: renormalise every few.
+                let mut pending = 0;
+                while next_factor < fb.factors.len() && fb.factors[next_factor].0 as usize == slot {
+                    let (_, alpha, beta) = fb.factors[next_factor];
+                    for (pj, m) in p.iter_mut().zip(grid) {
+                        *pj *= alpha * m + beta;
+                    }
+                    mean = None;
+                    pending += 1;
+                    if pending == RENORMALISE_EVERY {
+                        normalise(&mut p, last, grid);
+                        pending = 0;
+                    }
+                    next_factor += 1;
+                }
+                let mean = mean.unwrap_or_else(|| normalise(&mut p, last, grid));
+                // A voxel seen for the first time whose evidence hardly moves it (voxels deep
+                // behind a surface that noisy long readings reach) stays unknown instead of
+                // entering the map at its prior.
+                if existing.is_none() && (mean - 0.5).abs() < NEW_VOXEL_MIN_CHANGE {
+                    continue;
+                }
+                let i = existing.unwrap_or_else(|| brick.index_or_insert(slot, k));
+                brick.pdfs[i * k..(i + 1) * k].copy_from_slice(&p);
+                brick.means[i] = mean;
+            }
+        });
+        for (key, brick, _) in work {
             self.bricks.insert(key, brick);
-            emptied.push(fb);
         }
-        self.spare.give(emptied);
     }
 }
 

@@ -1220,7 +1220,8 @@ const UNALLOCATED: u32 = u32::MAX;
 /// Entries of [`TileScratch::recent`] (a power of two).
 const RECENT: usize = 512;
 
-/// A [`TileScratch::recent`] entry holding no brick (no ray reaches coordinates this far out).
+/// A [`TileScratch::recent`] entry holding no brick (a brick coordinate is an `i32` voxel
+/// coordinate `>> 3`, never `i32::MIN`).
 const NO_BRICK: BrickKey = BrickKey([i32::MIN; 3]);
 
 /// [`TileScratch::recent`]'s slot of brick `key`.

@@ -11,10 +11,10 @@
 //! map thinner than a brick, such as a planar laser's). The MRF (band allocation)
 //! allocates around depth points only, three bricks per brick holding end points: 5 KiB
 //! each for the marginals (and the values the change log compares with), and per keyframe
-//! 3 KiB each for its tiles' messages (12 bytes per voxel a tile's rays reach and 16 per
-//! run of them in one brick; measured on the demo room: 2.7 MiB per keyframe for 299
-//! end-point bricks at 0.05 m). Accurate to a factor of about 2: enough to refuse a build
-//! that cannot fit, not to size a machine.
+//! 2.5 KiB each for its tiles' messages (10 bytes per voxel a tile's rays reach and 16 per
+//! run of them in one brick; measured on the demo room with 12-byte entries: 2.7 MiB per
+//! keyframe for 299 end-point bricks at 0.05 m). Accurate to a factor of about 2: enough to
+//! refuse a build that cannot fit, not to size a machine.
 
 use super::{EngineConfig, EngineKind};
 use crate::map::BRICK_EDGE;
@@ -116,7 +116,7 @@ pub fn estimate_memory(config: &EngineConfig, extent: &Extent, readings: usize) 
             // marginals and for each keyframe's tiles.
             let (all, per) = extent.surface_bricks;
             if per > 0.0 && config.mrf.allocation == super::Allocation::Band {
-                return BAND * (5120.0 * all + 3072.0 * readings as f64 * per);
+                return BAND * (5120.0 * all + 2560.0 * readings as f64 * per);
             }
             6144.0 * (1.0 + readings as f64)
         }

@@ -166,13 +166,16 @@ pub struct KeyframeId(pub u64);
 /// Pixels per side of a tile, the unit of bookkeeping and re-tracing (see the module docs).
 pub const TILE: u32 = 16;
 
-/// One voxel that a tile's rays reach (12 bytes; its brick is the tile's run's). The tiles
-/// are most of the engine's memory, so length and `seen` are kept in 16 bits each.
+/// One voxel that a tile's rays reach (10 bytes; its brick is the tile's run's). The tiles
+/// are most of the engine's memory (22 million entries for coffin-world at 0.01 m), so the
+/// fields are 16 bits wide: the message is an `f32` kept as two halves, so that the entry
+/// needs no 4-byte alignment (12 bytes otherwise).
 #[derive(Clone, Copy, Debug, Default)]
 struct Entry {
-    /// The tile's message to the voxel (log-odds): its rays' messages, each weighted by its
-    /// length over the voxel edge, summed and damped. Kept exactly: removal subtracts it.
-    message: f32,
+    /// The tile's message to the voxel (log-odds), the bits of an `f32`: its rays' messages,
+    /// each weighted by its length over the voxel edge, summed and damped. Kept exactly:
+    /// removal subtracts it.
+    message: [u16; 2],
     /// Summed length of the tile's rays in the voxel, in 1/[`LENGTH_STEPS`] voxel edges (a
     /// tile's 256 rays reach at most 443 edges; saturates at 512). It only apportions the
     /// message among the rays for their cavities.
@@ -181,14 +184,14 @@ struct Entry {
     /// log-odds, saturating at +-32 (where marginals differ from 0 or 1 by 1e-14): the
     /// rounding moves a marginal by at most 1.2e-4, a tenth of the default tolerance.
     seen: i16,
-    /// The voxel's slot in its brick.
-    slot: u16,
-    /// Extra damping: the share of a change that goes in is halved this many times.
-    level: u8,
-    /// Bits 0-1: traces in a row whose change did not reverse; bit 2: the last change was
-    /// positive; bit 3: it was negative.
-    flags: u8,
+    /// Bits 0-8: the voxel's slot in its brick. Bits 9-15: `9 level + 3 calm + sign`, where
+    /// `level` (0-8) is the extra damping (the share of a change that goes in is halved this
+    /// many times), `calm` (0-2) counts the traces in a row whose change did not reverse, and
+    /// `sign` is the last change's: 0 none, 1 positive, 2 negative.
+    packed: u16,
 }
+
+const _: () = assert!(std::mem::size_of::<Entry>() == 10);
 
 /// Steps per voxel edge of [`Entry::length`].
 const LENGTH_STEPS: f64 = 128.0;
@@ -196,6 +199,26 @@ const LENGTH_STEPS: f64 = 128.0;
 const SEEN_STEPS: f32 = 1024.0;
 
 impl Entry {
+    /// The entry of the voxel in `slot`, with no damping and no change yet.
+    fn new(slot: usize) -> Entry {
+        Entry { packed: slot as u16, ..Entry::default() }
+    }
+
+    /// The message (log-odds).
+    fn message(&self) -> f32 {
+        f32::from_bits(self.message[0] as u32 | (self.message[1] as u32) << 16)
+    }
+
+    fn set_message(&mut self, m: f32) {
+        let bits = m.to_bits();
+        self.message = [bits as u16, (bits >> 16) as u16];
+    }
+
+    /// The voxel's slot in its brick.
+    fn slot(&self) -> usize {
+        (self.packed & 0x1ff) as usize
+    }
+
     /// The summed length in voxel edges.
     fn edges(&self) -> f32 {
         self.length as f32 / LENGTH_STEPS as f32
@@ -214,20 +237,33 @@ impl Entry {
         self.seen = (s * SEEN_STEPS).round().clamp(-(i16::MAX as f32), i16::MAX as f32) as i16;
     }
 
+    /// `9 level + 3 calm + sign` (see [`Entry::packed`]).
+    fn damping(&self) -> u8 {
+        (self.packed >> 9) as u8
+    }
+
+    /// Extra damping level.
+    fn level(&self) -> u8 {
+        self.damping() / 9
+    }
+
+    /// Traces in a row without a reversal.
     fn calm(&self) -> u8 {
-        self.flags & 3
+        self.damping() / 3 % 3
     }
 
     /// The sign of the message's last change (0 for none).
     fn step_sign(&self) -> f64 {
-        match self.flags >> 2 {
+        match self.damping() % 3 {
             1 => 1.0,
             2 => -1.0,
             _ => 0.0,
         }
     }
 
-    fn set_flags(&mut self, calm: u8, step: f64) {
+    /// Records the damping level (at most [`MAX_DAMPING_LEVEL`]), the calm count (below
+    /// [`CALM_TRACES`]) and the sign of the last change, `step`.
+    fn set_damping(&mut self, level: u8, calm: u8, step: f64) {
         let sign = if step > 0.0 {
             1
         } else if step < 0.0 {
@@ -235,7 +271,8 @@ impl Entry {
         } else {
             0
         };
-        self.flags = calm.min(3) | sign << 2;
+        let code = 9 * level.min(MAX_DAMPING_LEVEL) as u16 + 3 * calm.min(CALM_TRACES - 1) as u16 + sign;
+        self.packed = (self.packed & 0x1ff) | code << 9;
     }
 }
 
@@ -264,8 +301,7 @@ impl Tile {
 
     /// Every entry with its voxel.
     fn iter(&self) -> impl Iterator<Item = (VoxelKey, &Entry)> + '_ {
-        (0..self.runs.len())
-            .flat_map(move |n| self.run(n).iter().map(move |e| (self.runs[n].0.voxel(e.slot as usize), e)))
+        (0..self.runs.len()).flat_map(move |n| self.run(n).iter().map(move |e| (self.runs[n].0.voxel(e.slot()), e)))
     }
 
     /// Appends the entry of voxel `key` (entries come sorted by brick and slot).
@@ -728,7 +764,7 @@ impl MrfEngine {
         self.epoch += 1;
         let tiles = std::mem::take(&mut self.keyframes[i].tiles);
         for tile in &tiles {
-            let out: Vec<(VoxelKey, f32)> = tile.iter().map(|(k, e)| (k, -e.message)).collect();
+            let out: Vec<(VoxelKey, f32)> = tile.iter().map(|(k, e)| (k, -e.message())).collect();
             self.apply(&out);
         }
         self.keyframes[i].reset_tiles();
@@ -965,7 +1001,7 @@ impl MrfEngine {
             }
             let Some(brick) = self.sums.brick(bk) else { return true };
             for e in tile.run(n) {
-                let Some(&s) = brick.get(e.slot as usize) else { return true };
+                let Some(&s) = brick.get(e.slot()) else { return true };
                 // |d sigmoid| <= |dS| / 4: the exponentials only for changes that may matter.
                 let seen = e.seen();
                 if (s - seen).abs() as f64 > 4.0 * tolerance
@@ -989,7 +1025,7 @@ impl MrfEngine {
         report.tiles = tiles.len();
         // All traced against the same sums, then applied in tile order: the same sums
         // whatever the number of threads. (Held at once: a keyframe's new tiles with a change
-        // per entry, 16 bytes per entry on top of what its tiles already hold.)
+        // per entry, 14 bytes per entry on top of what its tiles already hold.)
         let kf = &self.keyframes[i];
         let rays = FrameRays::new(&kf.frame);
         let pending: Vec<Traced> = tiles
@@ -1002,7 +1038,7 @@ impl MrfEngine {
             for n in 0..tr.tile.runs.len() {
                 let start = tr.tile.runs[n].1 as usize;
                 let run = tr.tile.run(n).iter().zip(&tr.changes[start..]);
-                self.apply_run(tr.tile.runs[n].0, run.map(|(e, d)| (e.slot as usize, *d)));
+                self.apply_run(tr.tile.runs[n].0, run.map(|(e, d)| (e.slot(), *d)));
             }
             self.apply(&tr.gone);
             tr.tile.traced_at = self.epoch;
@@ -1132,30 +1168,29 @@ impl MrfEngine {
         let mut gone = Vec::new();
         for i in scratch.sorted() {
             let voxel = &scratch.voxels[i];
-            let old = voxel.old.map_or(0.0, |e| e.message);
+            let old = voxel.old.map_or(0.0, |e| e.message());
             if voxel.length > 0.0 {
-                let mut entry = Entry { slot: voxel.key.slot() as u16, ..Entry::default() };
+                let mut entry = Entry::new(voxel.key.slot());
                 entry.set_edges(voxel.length);
                 entry.set_seen(voxel.seen);
                 match voxel.old {
                     Some(e) => {
-                        let change = voxel.sum - e.message as f64;
+                        let change = voxel.sum - e.message() as f64;
                         let (level, calm) = if change * e.step_sign() < 0.0 {
-                            ((e.level + 1).min(MAX_DAMPING_LEVEL), 0)
+                            ((e.level() + 1).min(MAX_DAMPING_LEVEL), 0)
                         } else if e.calm() + 1 >= CALM_TRACES {
-                            (e.level.saturating_sub(1), 0)
+                            (e.level().saturating_sub(1), 0)
                         } else {
-                            (e.level, e.calm() + 1)
+                            (e.level(), e.calm() + 1)
                         };
                         let step = (1.0 - keep) * change / (1u32 << level) as f64;
-                        entry.message = (e.message as f64 + step) as f32;
-                        entry.level = level;
-                        entry.set_flags(calm, step);
+                        entry.set_message((e.message() as f64 + step) as f32);
+                        entry.set_damping(level, calm, step);
                     }
-                    None => entry.message = voxel.sum as f32,
+                    None => entry.set_message(voxel.sum as f32),
                 }
                 new.push(voxel.key, entry);
-                changes.push(entry.message - old);
+                changes.push(entry.message() - old);
             } else if old != 0.0 {
                 gone.push((voxel.key, -old));
             }
@@ -1336,7 +1371,7 @@ impl<'a> TileScratch<'a> {
         if i != u32::MAX {
             return i as usize;
         }
-        let own = old.map_or(0.0, |e| if e.length > 0 { e.message / e.edges() } else { 0.0 });
+        let own = old.map_or(0.0, |e| if e.length > 0 { e.message() / e.edges() } else { 0.0 });
         let i = self.voxels.len();
         table.index[slot] = i as u32;
         mask_set(&mut table.set, slot);

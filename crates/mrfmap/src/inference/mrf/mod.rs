@@ -1494,6 +1494,31 @@ mod tests {
     use super::*;
     use crate::source::Scene;
 
+    /// Every field of a packed entry reads back what was written, whatever its neighbours
+    /// hold: messages bit for bit (removal subtracts exactly what went in), every damping state.
+    #[test]
+    fn entries_keep_every_field() {
+        let mut rng = crate::random::Rng::new(13);
+        for n in 0..2000 {
+            let slot = n % BRICK_VOXELS;
+            let mut e = Entry::new(slot);
+            assert_eq!((e.level(), e.calm(), e.step_sign()), (0, 0, 0.0));
+            let m = (rng.range(-1.0, 1.0) * 10f64.powf(rng.range(-8.0, 4.0))) as f32;
+            e.set_message(m);
+            e.set_edges(rng.range(0.0, 500.0));
+            e.set_seen(rng.range(-40.0, 40.0) as f32);
+            let (edges, seen) = (e.edges(), e.seen());
+            let level = (n % (MAX_DAMPING_LEVEL as usize + 1)) as u8;
+            let calm = (n / 9 % CALM_TRACES as usize) as u8;
+            let step = [1.5, -0.25, 0.0][n / 27 % 3];
+            e.set_damping(level, calm, step);
+            assert_eq!(e.message().to_bits(), m.to_bits());
+            assert_eq!(e.slot(), slot);
+            assert_eq!((e.level(), e.calm(), e.step_sign()), (level, calm, step.signum() * (step != 0.0) as u8 as f64));
+            assert_eq!((e.edges(), e.seen()), (edges, seen));
+        }
+    }
+
     /// A floor and a box seen by `views` cameras on a circle.
     fn test_scene(views: usize) -> Scene {
         let toml = format!(

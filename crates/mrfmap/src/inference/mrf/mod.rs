@@ -191,7 +191,9 @@ struct Entry {
     packed: u16,
 }
 
+// The tiles' memory is 10 bytes per entry, and the damping state fits its 7 bits.
 const _: () = assert!(std::mem::size_of::<Entry>() == 10);
+const _: () = assert!(9 * MAX_DAMPING_LEVEL as u16 + 3 * (CALM_TRACES as u16 - 1) + 2 < 1 << 7);
 
 /// Steps per voxel edge of [`Entry::length`].
 const LENGTH_STEPS: f64 = 128.0;

@@ -479,79 +479,83 @@ impl CrmEngine {
             .collect();
         let engine = &*self;
         let grid = &engine.grid;
-        work.par_iter_mut().for_each(|(_, brick, fb)| {
-            // Factors grouped by slot, ray order kept within a slot.
-            fb.factors.sort_by_key(|f| f.0);
-            let mut touched = [0u64; 8];
-            for (slot, n) in fb.passes.iter().enumerate() {
-                if *n > 0 {
-                    mask_set(&mut touched, slot);
+        // The pdf of a voxel new to the map; a scratch pdf per thread.
+        let uniform = vec![1.0 / k as f32; k];
+        work.par_iter_mut().for_each_init(
+            || vec![0f32; k],
+            |p, (_, brick, fb)| {
+                // Factors grouped by slot, ray order kept within a slot.
+                fb.factors.sort_by_key(|f| f.0);
+                let mut touched = [0u64; 8];
+                for (slot, n) in fb.passes.iter().enumerate() {
+                    if *n > 0 {
+                        mask_set(&mut touched, slot);
+                    }
                 }
-            }
-            for f in &fb.factors {
-                mask_set(&mut touched, f.0 as usize);
-            }
-            let mut next_factor = 0;
-            let (mut p, uniform) = (vec![0f32; k], vec![1.0 / k as f32; k]);
-            for slot in mask_slots(&touched) {
-                let existing = brick.index(slot);
-                let has_factors = fb.factors.get(next_factor).is_some_and(|f| f.0 as usize == slot);
-                let mut n = fb.passes[slot] as usize;
-                if let Some(i) = existing {
-                    // Free passes only (most voxels a frame touches) are counted, not
-                    // multiplied in: the pdf is read and written once per few dozen passes,
-                    // or when a factor or a ray's cause model needs it. The factors commute,
-                    // so this changes rounding only.
-                    let total = n + brick.pending[i] as usize;
-                    if !has_factors && total < LAZY_PASSES {
-                        brick.pending[i] = total as u8;
+                for f in &fb.factors {
+                    mask_set(&mut touched, f.0 as usize);
+                }
+                let mut next_factor = 0;
+                for slot in mask_slots(&touched) {
+                    let existing = brick.index(slot);
+                    let has_factors = fb.factors.get(next_factor).is_some_and(|f| f.0 as usize == slot);
+                    let mut n = fb.passes[slot] as usize;
+                    if let Some(i) = existing {
+                        // Free passes only (most voxels a frame touches) are counted, not
+                        // multiplied in: the pdf is read and written once per few dozen passes,
+                        // or when a factor or a ray's cause model needs it. The factors commute,
+                        // so this changes rounding only.
+                        let total = n + brick.pending[i] as usize;
+                        if !has_factors && total < LAZY_PASSES {
+                            brick.pending[i] = total as u8;
+                            continue;
+                        }
+                        n = total;
+                        brick.pending[i] = 0;
+                    }
+                    // The pdf before this frame, read in place (copying it was a fifth of a laser
+                    // log's build): the fallback if every particle underflows.
+                    let last: &[f32] = match existing {
+                        Some(i) => &brick.pdfs[i * k..(i + 1) * k],
+                        None => &uniform,
+                    };
+                    p.copy_from_slice(last);
+                    let mut mean = None;
+                    if n > 0 {
+                        mean = engine.multiply_passes(p, n);
+                        if mean.is_none() {
+                            p.copy_from_slice(last);
+                        }
+                    }
+                    // Factors are scaled to a maximum of 1, so a few of them in a row cannot
+                    // underflow: renormalise every few.
+                    let mut pending = 0;
+                    while next_factor < fb.factors.len() && fb.factors[next_factor].0 as usize == slot {
+                        let (_, alpha, beta) = fb.factors[next_factor];
+                        for (pj, m) in p.iter_mut().zip(grid) {
+                            *pj *= alpha * m + beta;
+                        }
+                        mean = None;
+                        pending += 1;
+                        if pending == RENORMALISE_EVERY {
+                            normalise(p, last, grid);
+                            pending = 0;
+                        }
+                        next_factor += 1;
+                    }
+                    let mean = mean.unwrap_or_else(|| normalise(p, last, grid));
+                    // A voxel seen for the first time whose evidence hardly moves it (voxels deep
+                    // behind a surface that noisy long readings reach) stays unknown instead of
+                    // entering the map at its prior.
+                    if existing.is_none() && (mean - 0.5).abs() < NEW_VOXEL_MIN_CHANGE {
                         continue;
                     }
-                    n = total;
-                    brick.pending[i] = 0;
+                    let i = existing.unwrap_or_else(|| brick.index_or_insert(slot, k));
+                    brick.pdfs[i * k..(i + 1) * k].copy_from_slice(p);
+                    brick.means[i] = mean;
                 }
-                // The pdf before this frame, read in place (copying it was a fifth of a laser
-                // log's build): the fallback if every particle underflows.
-                let last: &[f32] = match existing {
-                    Some(i) => &brick.pdfs[i * k..(i + 1) * k],
-                    None => &uniform,
-                };
-                p.copy_from_slice(last);
-                let mut mean = None;
-                if n > 0 {
-                    mean = engine.multiply_passes(&mut p, n);
-                    if mean.is_none() {
-                        p.copy_from_slice(last);
-                    }
-                }
-                // Factors are scaled to a maximum of 1, so a few of them in a row cannot
-                // underflow: renormalise every few.
-                let mut pending = 0;
-                while next_factor < fb.factors.len() && fb.factors[next_factor].0 as usize == slot {
-                    let (_, alpha, beta) = fb.factors[next_factor];
-                    for (pj, m) in p.iter_mut().zip(grid) {
-                        *pj *= alpha * m + beta;
-                    }
-                    mean = None;
-                    pending += 1;
-                    if pending == RENORMALISE_EVERY {
-                        normalise(&mut p, last, grid);
-                        pending = 0;
-                    }
-                    next_factor += 1;
-                }
-                let mean = mean.unwrap_or_else(|| normalise(&mut p, last, grid));
-                // A voxel seen for the first time whose evidence hardly moves it (voxels deep
-                // behind a surface that noisy long readings reach) stays unknown instead of
-                // entering the map at its prior.
-                if existing.is_none() && (mean - 0.5).abs() < NEW_VOXEL_MIN_CHANGE {
-                    continue;
-                }
-                let i = existing.unwrap_or_else(|| brick.index_or_insert(slot, k));
-                brick.pdfs[i * k..(i + 1) * k].copy_from_slice(&p);
-                brick.means[i] = mean;
-            }
-        });
+            },
+        );
         for (key, brick, _) in work {
             self.bricks.insert(key, brick);
         }

@@ -20,7 +20,7 @@ use rustc_hash::FxHashMap;
 use super::{Engine, logit, sigmoid};
 use crate::error::{Error, Result};
 use crate::frames::{Frame, RangeScan};
-use crate::map::{BrickKey, BrickList, Grid, Map, MapVoxel, SlotMask, VoxelKey, mask_set, mask_slots};
+use crate::map::{BrickKey, BrickList, Grid, Map, MapVoxel, SlotMask, VoxelKey, mask_set};
 use crate::rays::{CrossedVoxels, PixelRay, Projector, RayLimits, Rays, for_each_crossing};
 
 /// How one ray changes the voxels it crosses (occupancy probabilities, turned into log-odds).
@@ -191,13 +191,9 @@ impl LogOddsEngine {
         let (hit, miss, min, max) = (logit(p_hit) as f32, logit(p_miss) as f32, self.min, self.max);
         // Each marked brick is its own work (serially this was a tenth of a projected frame).
         self.grid.update_bricks(&marks.bricks, |brick, m| {
-            for slot in mask_slots(&m.hit) {
-                Self::update(brick.get_or_insert(slot, 0.0), hit, min, max);
-            }
+            brick.update_slots(&m.hit, 0.0, |l| Self::update(l, hit, min, max));
             let free_only: SlotMask = std::array::from_fn(|w| m.free[w] & !m.hit[w]);
-            for slot in mask_slots(&free_only) {
-                Self::update(brick.get_or_insert(slot, 0.0), miss, min, max);
-            }
+            brick.update_slots(&free_only, 0.0, |l| Self::update(l, miss, min, max));
         });
     }
 

@@ -202,6 +202,26 @@ impl<V: Copy + Default> Brick<V> {
         &mut self.values[slot]
     }
 
+    /// Calls `update` on the value of every slot in `slots`, allocating those not allocated
+    /// yet with `init` first: [`Brick::get_or_insert`] for a set of slots, one mask word at a
+    /// time (per slot, the mask's test and set were a twentieth of a projected log-odds frame).
+    #[inline]
+    pub fn update_slots(&mut self, slots: &SlotMask, init: V, mut update: impl FnMut(&mut V)) {
+        for (w, (&want, have)) in slots.iter().zip(&mut self.mask).enumerate() {
+            let mut new = want & !*have;
+            *have |= want;
+            while new != 0 {
+                self.values[w * 64 + new.trailing_zeros() as usize] = init;
+                new &= new - 1;
+            }
+            let mut all = want;
+            while all != 0 {
+                update(&mut self.values[w * 64 + all.trailing_zeros() as usize]);
+                all &= all - 1;
+            }
+        }
+    }
+
     /// Number of allocated voxels.
     pub fn len(&self) -> usize {
         self.mask.iter().map(|w| w.count_ones() as usize).sum()
@@ -490,5 +510,23 @@ mod tests {
             mask_set(&mut m, s);
         }
         assert_eq!(mask_slots(&m).collect::<Vec<_>>(), vec![0, 5, 63, 64, 300, 511]);
+    }
+
+    #[test]
+    fn update_slots_is_get_or_insert_per_slot() {
+        let mut rng = Rng::new(17);
+        let (mut fast, mut slow) = (Brick::<u32>::new(), Brick::<u32>::new());
+        for round in 0..50u32 {
+            // Sparse and dense masks, overlapping what earlier rounds allocated.
+            let slots: SlotMask = std::array::from_fn(|_| rng.next_u64() & rng.next_u64() & rng.next_u64());
+            fast.update_slots(&slots, 1000 + round, |v| *v = v.wrapping_mul(3) + round);
+            for slot in mask_slots(&slots) {
+                let v = slow.get_or_insert(slot, 1000 + round);
+                *v = v.wrapping_mul(3) + round;
+            }
+            assert_eq!(fast.mask(), slow.mask());
+            assert!(fast.iter().eq(slow.iter()), "round {round}");
+        }
+        assert!(fast.len() > 400, "the masks should have filled most of the brick");
     }
 }

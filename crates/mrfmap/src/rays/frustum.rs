@@ -234,42 +234,53 @@ struct Level {
     cells: Vec<Bounds>,
 }
 
-/// Camera-z bounds of the segments of a set of pixels.
+/// Camera-z bounds of the segments of a set of pixels: `[end_min, -end_max, start_min,
+/// -start_max]`, the larger bounds negated so that merging two sets is a minimum per lane
+/// (one vector instruction; the pyramid reads and builds are made of merges).
+/// - `end_min`: smallest end depth; `-inf` if any pixel has no segment (such a set cannot
+///   see a box whole).
+/// - `end_max`: largest end depth (`-inf` if no pixel has a segment).
+/// - `start_min`: smallest start depth (`+inf` if no pixel has a segment).
+/// - `start_max`: largest start depth; `+inf` if any pixel has no segment.
 #[derive(Clone, Copy, Debug)]
-struct Bounds {
-    /// Smallest end depth; `-inf` if any pixel has no segment (such a set cannot see a box
-    /// whole).
-    end_min: f32,
-    /// Largest end depth (`-inf` if no pixel has a segment).
-    end_max: f32,
-    /// Smallest start depth (`+inf` if no pixel has a segment).
-    start_min: f32,
-    /// Largest start depth; `+inf` if any pixel has no segment.
-    start_max: f32,
-}
+struct Bounds([f32; 4]);
 
 impl Bounds {
-    const NO_SEGMENT: Bounds = Bounds {
-        end_min: f32::NEG_INFINITY,
-        end_max: f32::NEG_INFINITY,
-        start_min: f32::INFINITY,
-        start_max: f32::INFINITY,
-    };
+    const NO_SEGMENT: Bounds = Bounds([f32::NEG_INFINITY, f32::INFINITY, f32::INFINITY, f32::NEG_INFINITY]);
+    /// The bounds of no pixels: merging it changes nothing.
+    const EMPTY: Bounds = Bounds([f32::INFINITY; 4]);
+
+    /// One pixel's segment from camera depth `start` to `end`.
+    fn segment(start: f32, end: f32) -> Bounds {
+        Bounds([end, -end, start, -start])
+    }
+
+    fn end_min(&self) -> f32 {
+        self.0[0]
+    }
+
+    fn end_max(&self) -> f32 {
+        -self.0[1]
+    }
+
+    fn start_min(&self) -> f32 {
+        self.0[2]
+    }
+
+    fn start_max(&self) -> f32 {
+        -self.0[3]
+    }
 
     /// No segment of these pixels reaches into camera depths `(z_near, z_far)`: they all end
     /// before it or start behind it.
     #[inline]
     fn miss(&self, z_near: f32, z_far: f32) -> bool {
-        self.end_max <= z_near || self.start_min >= z_far
+        self.end_max() <= z_near || self.start_min() >= z_far
     }
 
+    #[inline]
     fn union(self, o: Bounds) -> Bounds {
-        Bounds {
-            end_min: min(self.end_min, o.end_min),
-            end_max: max(self.end_max, o.end_max),
-            start_min: min(self.start_min, o.start_min),
-            start_max: max(self.start_max, o.start_max),
-        }
+        Bounds(std::array::from_fn(|i| min(self.0[i], o.0[i])))
     }
 }
 
@@ -306,7 +317,7 @@ impl Segments {
                 pixels[u] =
                     PixelSegment { inv_dir: reciprocals(ray.dir), start: seg.start as f32, end: seg.end as f32 };
                 let (z0, z1) = ((seg.start * ray.cz) as f32, (seg.end * ray.cz) as f32);
-                depths[u] = Bounds { end_min: z1, end_max: z1, start_min: z0, start_max: z0 };
+                depths[u] = Bounds::segment(z0, z1);
                 if seg.hits_surface {
                     // The end in voxel units; neighbouring pixels mostly end in the same voxel
                     // as the last one (`floor(q) == last` exactly when `last <= q < last + 1`),
@@ -347,7 +358,7 @@ impl Segments {
 
     /// Largest end depth over all pixels (`None` without segments).
     fn deepest(&self) -> Option<f32> {
-        let top = self.levels.last()?.cells.first()?.end_max;
+        let top = self.levels.last()?.cells.first()?.end_max();
         (top > 0.0).then_some(top)
     }
 
@@ -358,9 +369,7 @@ impl Segments {
         let span = (u1 - u0 + 1).max(v1 - v0 + 1);
         let k = (usize::BITS - 1 - span.leading_zeros()) as usize;
         let level = &self.levels[k.min(self.levels.len() - 1)];
-        let mut b = Bounds::NO_SEGMENT;
-        b.end_min = f32::INFINITY;
-        b.start_max = f32::NEG_INFINITY;
+        let mut b = Bounds::EMPTY;
         // (Half-open ranges: the end checks of inclusive ones were 1% of a projected frame.)
         for cv in (v0 >> k)..(v1 >> k) + 1 {
             for cu in (u0 >> k)..(u1 >> k) + 1 {
@@ -422,14 +431,18 @@ impl Rect {
     /// `u = (min, max)`, `v = (min, max)`; `None` if there are none.
     #[inline]
     fn of_pixel_centres(u: (f64, f64), v: (f64, f64), u_last: f64, v_last: f64) -> Option<Rect> {
-        // Both ends are clamped to be non-negative first, so truncation is floor (a call to
-        // libm's floor/ceil here cost 4% of the whole).
-        let ceil = |x: f64| {
-            let t = x as usize;
-            if (t as f64) < x { t + 1 } else { t }
+        // Both ends are clamped into `[0, last + 1]` first, so truncation is floor (a call to
+        // libm's floor/ceil here cost 4% of the whole) and the casts are to `u32` (a cast to
+        // `usize` spends a dozen instructions on values past 2^63; this one was 3% of a
+        // projected frame). A lower end clamped to `last + 1` leaves no pixel, as before.
+        let ceil = |x: f64, last: f64| {
+            let x = max(x, 0.0).min(last + 1.0);
+            let t = x as u32;
+            (if (t as f64) < x { t + 1 } else { t }) as usize
         };
-        let (u0, u1) = (ceil(u.0.max(0.0)), u.1.min(u_last) as usize);
-        let (v0, v1) = (ceil(v.0.max(0.0)), v.1.min(v_last) as usize);
+        let floor = |x: f64, last: f64| min(x, last).max(0.0) as u32 as usize;
+        let (u0, u1) = (ceil(u.0, u_last), floor(u.1, u_last));
+        let (v0, v1) = (ceil(v.0, v_last), floor(v.1, v_last));
         (u.1 >= 0.0 && v.1 >= 0.0 && u0 <= u1 && v0 <= v1).then_some(Rect { u0, u1, v0, v1 })
     }
 }
@@ -725,7 +738,7 @@ impl<'a> View<'a> {
             return (Seen::None, None);
         }
         // Every pixel that sees the box starts before it and ends behind it.
-        let through = d.start_max <= z_near32 && d.end_min >= z_far32;
+        let through = d.start_max() <= z_near32 && d.end_min() >= z_far32;
         let dense = known_dense || corners.map(|c| c.x * c.x + c.y * c.y + c.z * c.z).all(|d2| d2 <= self.dense_range2);
         let seen = if inside_image && through && dense { Seen::All } else { Seen::Some };
         (seen, Some(Footprint { rect, z_near: z_near32, z_far: z_far32, dense }))
@@ -754,9 +767,10 @@ impl<'a> View<'a> {
         });
         if c[2] > 0.0 {
             // The nearest pixel centre, clamped to the footprint: a truncating cast of
-            // `x + 1/2`, non-negative (`round` is a libm call on baseline x86-64, 1% of a frame).
+            // `x + 1/2`, non-negative (`round` is a libm call on baseline x86-64, 1% of a frame;
+            // a cast to `u32` is a few instructions where one to `usize` is a dozen).
             let inv_z = 1.0 / c[2];
-            let nearest = |x: f64, lo: usize| ((x + 0.5).max(0.0) as usize).max(lo);
+            let nearest = |x: f64, lo: usize| ((x + 0.5).max(0.0) as u32 as usize).max(lo);
             let (u, v) = (
                 nearest(self.fx * c[0] * inv_z + self.cx, rect.u0),
                 nearest(self.fy * c[1] * inv_z + self.cy, rect.v0),

@@ -571,6 +571,24 @@ fn mrf_reference_metric_and_bad_values_and_plain_errors() {
     assert!(o.status.success() && stderr(&o).contains("sweeps"), "{}", stderr(&o));
     let until = mrfmap::map::Map::load(&until).unwrap();
     assert_eq!(until.params.get("tolerance").map(String::as_str), Some("0.01"));
+    // `bench` takes the MRF's ray spacing, for its full builds and its added keyframe alike,
+    // and refuses it for the other engines.
+    let o = run(&[
+        "bench",
+        s(&data),
+        "--engine",
+        "mrf",
+        "--resolutions",
+        "0.1",
+        "--repeat",
+        "1",
+        "--incremental",
+        "--ray-spacing",
+        "1",
+    ]);
+    assert!(o.status.success() && stdout(&o).contains("incremental_ms"), "{}", stderr(&o));
+    let o = run(&["bench", s(&data), "--resolutions", "0.1", "--ray-spacing", "1"]);
+    assert!(!o.status.success() && stderr(&o).contains("--ray-spacing is for --engine mrf"), "{}", stderr(&o));
     // A missing output folder is refused before any work, and the OS message is said once.
     let o = run(&["build", s(&data), "-o", s(&dir.join("no/such/m.mrfmap")), "--resolution", "0.05"]);
     assert!(!o.status.success() && stderr(&o).contains("output folder"), "{}", stderr(&o));

@@ -31,6 +31,10 @@ pub struct Args {
     /// schedule (median of --repeat runs).
     #[arg(long)]
     incremental: bool,
+    /// MRF only: trace one ray per block of pixels whose rays lie at most this many voxel
+    /// edges apart (build's --ray-spacing); 0 (default) traces every pixel.
+    #[arg(long, default_value_t = 0.0, value_parser = super::non_negative)]
+    ray_spacing: f64,
     /// CRM only: particles per voxel.
     #[arg(long, default_value_t = 101)]
     particles: usize,
@@ -51,9 +55,8 @@ pub(crate) const BASE_SWEEPS: usize = 300;
 /// added to is inferred to convergence first (at most [`BASE_SWEEPS`] sweeps), as a robot's
 /// map is after many keyframes; between runs the keyframe is removed and the map re-inferred
 /// the same way (not timed).
-fn incremental_mrf(frames: &[Frame], resolution: f64, repeat: u32) -> Result<f64> {
+fn incremental_mrf(frames: &[Frame], resolution: f64, repeat: u32, params: MrfParams) -> Result<f64> {
     let (last, rest) = frames.split_last().ok_or_else(|| anyhow::anyhow!("no frames"))?;
-    let params = MrfParams::default();
     let tolerance = params.tolerance.unwrap_or(mrfmap::inference::DEFAULT_TOLERANCE);
     let mut engine = MrfEngine::new(resolution, Default::default(), params)?;
     for f in rest {
@@ -79,8 +82,16 @@ pub fn run(a: Args) -> Result<()> {
     if a.incremental && kind != EngineKind::Mrf {
         anyhow::bail!("--incremental is for --engine mrf");
     }
+    if a.ray_spacing > 0.0 && kind != EngineKind::Mrf {
+        anyhow::bail!("--ray-spacing is for --engine mrf");
+    }
+    let mrf = MrfParams { ray_spacing: a.ray_spacing, ..MrfParams::default() };
     let incremental = |frames: &[Frame], r: f64| -> Result<String> {
-        Ok(if a.incremental { format!("\t{:.0}", incremental_mrf(frames, r, a.repeat)? * 1e3) } else { String::new() })
+        Ok(if a.incremental {
+            format!("\t{:.0}", incremental_mrf(frames, r, a.repeat, mrf)? * 1e3)
+        } else {
+            String::new()
+        })
     };
     if BagArgs::is_bag(&a.dataset) {
         let frames = a.bag.frames(&a.dataset, None)?;
@@ -129,6 +140,7 @@ fn table<R: Reading>(
             let config = EngineConfig {
                 crm: CrmParams { particles: a.particles },
                 logodds: LogOddsParams { marking: marking(&a.marking), ..Default::default() },
+                mrf: MrfParams { ray_spacing: a.ray_spacing, ..MrfParams::default() },
                 ..EngineConfig::new(kind, resolution)
             };
             let mut engine = new_engine(&config)?;

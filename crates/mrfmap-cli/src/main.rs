@@ -14,6 +14,10 @@ struct Cli {
     /// No progress bars and no log lines below warnings.
     #[arg(long, short, global = true)]
     quiet: bool,
+    /// Debug log lines of mrfmap too: e.g. the tiles and rays each sweep of MRF inference
+    /// traced (RUST_LOG, when set, decides instead).
+    #[arg(long, short, global = true, conflicts_with = "quiet")]
+    verbose: bool,
     /// Worker threads (default: all cores; at most 1024).
     #[arg(long, global = true, value_parser = clap::value_parser!(u32).range(1..=1024))]
     threads: Option<u32>,
@@ -95,7 +99,11 @@ fn main() {
         }
         Err(e) => e.exit(),
     };
-    let default_level = if cli.quiet { "warn" } else { "info" };
+    let default_level = match (cli.quiet, cli.verbose) {
+        (true, _) => "warn",
+        (_, true) => "info,mrfmap=debug",
+        _ => "info",
+    };
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default_level));
     // Colour only for a terminal, and never with NO_COLOR set (https://no-color.org).

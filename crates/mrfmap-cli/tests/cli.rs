@@ -567,8 +567,13 @@ fn mrf_reference_metric_and_bad_values_and_plain_errors() {
         "0.01",
         "--iterations",
         "20",
+        "--verbose",
     ]);
+    // `--verbose` adds a line per sweep with the tiles and rays it traced.
     assert!(o.status.success() && stderr(&o).contains("sweeps"), "{}", stderr(&o));
+    assert!(stderr(&o).contains("sweep 1: ") && stderr(&o).contains(" rays traced"), "{}", stderr(&o));
+    let o = run(&["info", s(&data), "--verbose", "--quiet"]);
+    assert!(!o.status.success() && stderr(&o).contains("--quiet"), "{}", stderr(&o));
     let until = mrfmap::map::Map::load(&until).unwrap();
     assert_eq!(until.params.get("tolerance").map(String::as_str), Some("0.01"));
     // `bench` takes the MRF's ray spacing, for its full builds and its added keyframe alike,

@@ -654,7 +654,7 @@ impl MrfEngine {
             self.log_floor = self.epoch + 1;
         }
         for sweep in 0..max_sweeps {
-            let before = report.tiles;
+            let (before, rays) = (report.tiles, report.rays);
             for i in 0..self.keyframes.len() {
                 let dirty = self.dirty_tiles(i, tolerance);
                 report.add(self.update_tiles(i, &dirty));
@@ -664,7 +664,7 @@ impl MrfEngine {
             let seen = self.log.partition_point(|&(e, _)| e <= checked);
             self.log.drain(..seen);
             report.sweeps += 1;
-            tracing::debug!("sweep {}: {} tiles traced", sweep + 1, report.tiles - before);
+            tracing::debug!("sweep {}: {} tiles, {} rays traced", sweep + 1, report.tiles - before, report.rays - rays);
             progress(sweep + 1, max_sweeps);
             if report.tiles == before {
                 report.converged = true;
@@ -701,11 +701,13 @@ impl MrfEngine {
         let total = iterations * active.len();
         let mut report = RunReport { sweeps: iterations, ..Default::default() };
         for round in 0..iterations {
+            let (tiles, rays) = (report.tiles, report.rays);
             for (n, &i) in active.iter().enumerate() {
                 let all: Vec<usize> = (0..self.keyframes[i].tiles.len()).collect();
                 report.add(self.update_tiles(i, &all));
                 progress(round * active.len() + n + 1, total);
             }
+            tracing::debug!("sweep {}: {} tiles, {} rays traced", round + 1, report.tiles - tiles, report.rays - rays);
         }
         self.changed.clear();
         self.last_run = active.len();

@@ -47,6 +47,13 @@ pub struct Args {
     bag: BagArgs,
 }
 
+impl Args {
+    /// The MRF's parameters: the defaults with `--ray-spacing`.
+    fn mrf_params(&self) -> MrfParams {
+        MrfParams { ray_spacing: self.ray_spacing, ..MrfParams::default() }
+    }
+}
+
 /// Sweeps allowed for inferring the map that a keyframe is added to (not timed).
 pub(crate) const BASE_SWEEPS: usize = 300;
 
@@ -85,10 +92,9 @@ pub fn run(a: Args) -> Result<()> {
     if a.ray_spacing > 0.0 && kind != EngineKind::Mrf {
         anyhow::bail!("--ray-spacing is for --engine mrf");
     }
-    let mrf = MrfParams { ray_spacing: a.ray_spacing, ..MrfParams::default() };
     let incremental = |frames: &[Frame], r: f64| -> Result<String> {
         Ok(if a.incremental {
-            format!("\t{:.0}", incremental_mrf(frames, r, a.repeat, mrf)? * 1e3)
+            format!("\t{:.0}", incremental_mrf(frames, r, a.repeat, a.mrf_params())? * 1e3)
         } else {
             String::new()
         })
@@ -140,7 +146,7 @@ fn table<R: Reading>(
             let config = EngineConfig {
                 crm: CrmParams { particles: a.particles },
                 logodds: LogOddsParams { marking: marking(&a.marking), ..Default::default() },
-                mrf: MrfParams { ray_spacing: a.ray_spacing, ..MrfParams::default() },
+                mrf: a.mrf_params(),
                 ..EngineConfig::new(kind, resolution)
             };
             let mut engine = new_engine(&config)?;

@@ -235,8 +235,9 @@ struct Level {
 }
 
 /// Camera-z bounds of the segments of a set of pixels: `[end_min, -end_max, start_min,
-/// -start_max]`, the larger bounds negated so that merging two sets is a minimum per lane
-/// (one vector instruction; the pyramid reads and builds are made of merges).
+/// -start_max]`, the larger bounds negated so that merging two sets is a minimum per lane,
+/// which the compiler vectorises (the pyramid reads and builds are made of merges; with a
+/// minimum or maximum per named field they took 4% more instructions per projected frame).
 /// - `end_min`: smallest end depth; `-inf` if any pixel has no segment (such a set cannot
 ///   see a box whole).
 /// - `end_max`: largest end depth (`-inf` if no pixel has a segment).

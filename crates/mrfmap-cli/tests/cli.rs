@@ -764,6 +764,18 @@ fn laser_log_build_grid2d_view_and_experiment() {
     assert!(o.status.success(), "{}", stderr(&o));
     let report = std::fs::read_to_string(out.join("report.md")).unwrap();
     assert!(report.contains("## Results") && report.contains("CRM, 101 particles") && report.contains("pi / (n - 1)"));
+    // results.json holds the same scores and the two checks, consistent with them.
+    let v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("results.json")).unwrap()).unwrap();
+    let (methods, sweep) = (v["methods"].as_array().unwrap(), v["sweep"].as_array().unwrap());
+    assert_eq!((methods.len(), sweep.len()), (3, 48));
+    let crm_mae = methods[0]["mae"].as_f64().unwrap();
+    let beaten = sweep.iter().filter(|s| crm_mae < s["mae"].as_f64().unwrap()).count();
+    assert_eq!(v["crm_mae_beats_settings"].as_u64(), Some(beaten as u64));
+    assert_eq!(v["crm_mae_below_every_setting"].as_bool(), Some(beaten == 48));
+    let below = methods[0]["ic_2"].as_f64().unwrap() < methods[2]["ic_2"].as_f64().unwrap();
+    assert_eq!(v["crm_ic_2_below_paper_ism"].as_bool(), Some(below));
+    assert!(report.contains(&format!("{:.4}", crm_mae)), "the report shows the same MAE");
     for png in ["reference.png", "crm.png", "crm15.png", "logodds-paper-ism.png"] {
         assert!(out.join(png).is_file(), "{png}");
     }

@@ -103,6 +103,16 @@ struct Scores {
     seconds: f64,
 }
 
+impl Scores {
+    fn json(&self) -> serde_json::Value {
+        serde_json::json!({
+            "label": self.label, "mae": self.mae, "auc": self.auc, "ic_1.25": self.ic_125, "ic_2": self.ic_2,
+            "beyond_1.25_sigma": self.beyond_125, "beyond_2_sigma": self.beyond_2, "pcc_sigma_error": self.pcc,
+            "observed": self.observed, "seconds": self.seconds,
+        })
+    }
+}
+
 /// `map`'s cells against the reference's known cells; unobserved cells at `prior`.
 fn score(label: String, reference: &Map, map: &Map, prior: (f64, f64), seconds: f64) -> Scores {
     let cells: Vec<VoxelTruth> = reference
@@ -263,9 +273,26 @@ pub(super) fn crm_laser(a: Args) -> Result<()> {
         "\nPictures (occupancy and sigma side by side, unknown grey): `reference.png`, `crm.png`, `crm15.png`, \
          `logodds-paper-ism.png`."
     );
+    // The same numbers for scripts that run the experiment over many logs (bench/radish.sh),
+    // with the issue's two checks spelled out.
+    let json = serde_json::json!({
+        "log": a.log.display().to_string(),
+        "resolution": r,
+        "subset": a.subset,
+        "scans": all.len(),
+        "reference_cells": truth.voxels.len(),
+        "reference_occupied": occupied,
+        "methods": rows.iter().map(Scores::json).collect::<Vec<_>>(),
+        "sweep": swept.iter().map(Scores::json).collect::<Vec<_>>(),
+        "best_of_sweep_by_mae": best.json(),
+        "crm_mae_beats_settings": beaten,
+        "crm_mae_below_every_setting": beaten == swept.len(),
+        "crm_ic_2_below_paper_ism": crm.ic_2 < rows[2].ic_2,
+    });
+    write_text(&a.output.join("results.json"), &format!("{json:#}\n"))?;
     let path = a.output.join("report.md");
     write_text(&path, &report)?;
     print!("{report}");
-    eprintln!("wrote {}", path.display());
+    eprintln!("wrote {} and results.json", path.display());
     Ok(())
 }

@@ -91,8 +91,8 @@ pub fn run(a: Args) -> Result<()> {
     {
         let missing: Vec<&String> = mine.difference(theirs).collect();
         if !missing.is_empty() {
-            eprintln!(
-                "warning: {} image(s) in {} have no partner in {} and are skipped (first: {})",
+            tracing::warn!(
+                "{} image(s) in {} have no partner in {} and are skipped (first: {})",
                 missing.len(),
                 dir.display(),
                 other.display(),

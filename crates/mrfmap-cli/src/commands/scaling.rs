@@ -190,7 +190,7 @@ fn resolution_curves(a: &Args, frames: &[Frame], report: &mut String) -> Result<
         for &r in &a.resolutions {
             let (secs, mib) = time_build(kind, r, a.particles, frames)?;
             let _ = writeln!(report, "| {kind} | {r} | {secs:.3} | {mib:.0} |");
-            eprintln!("{kind} {r}: {secs:.3} s/frame, {mib:.0} MiB");
+            tracing::info!("{kind} {r}: {secs:.3} s/frame, {mib:.0} MiB");
             t.push((r * 100.0, secs));
             m.push((r * 100.0, mib));
         }
@@ -305,7 +305,9 @@ fn keyframe_curves(a: &Args, report: &mut String) -> Result<()> {
             report,
             "| {n} | {full_secs:.2} | {converged} | {near_secs:.2} | {far_secs:.2} | {near_tiles} | {far_tiles} |"
         );
-        eprintln!("mrf {n} keyframes: build {full_secs:.2} s, add near {near_secs:.2} s, add apart {far_secs:.2} s");
+        tracing::info!(
+            "mrf {n} keyframes: build {full_secs:.2} s, add near {near_secs:.2} s, add apart {far_secs:.2} s"
+        );
         full.push((n as f64, full_secs));
         add_near.push((n as f64, near_secs));
         add_far.push((n as f64, far_secs));

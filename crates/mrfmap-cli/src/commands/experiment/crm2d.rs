@@ -102,7 +102,7 @@ pub(super) fn crm_2d(a: Crm2dArgs) -> Result<()> {
         }
         table.push((format!("{n} s"), rows));
         sweep_rows.push(swept);
-        eprintln!("noise {n} cells done");
+        tracing::info!("noise {n} cells done");
     }
 
     // The Fig. 7 table: one block per metric, one row per method, one column per noise level.
@@ -174,7 +174,7 @@ pub(super) fn crm_2d(a: Crm2dArgs) -> Result<()> {
     let path = a.output.join("report.md");
     write_text(&path, &report)?;
     print!("{report}");
-    eprintln!("wrote {}", path.display());
+    tracing::info!("wrote {}", path.display());
     Ok(())
 }
 

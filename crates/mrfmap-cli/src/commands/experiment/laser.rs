@@ -214,7 +214,7 @@ pub(super) fn crm_laser(a: Args) -> Result<()> {
         };
         picture(&map, &a.output.join(format!("{name}.png")))?;
         rows.push(score(method.label(), &truth, &map, method.prior(), seconds));
-        eprintln!("{} done", method.label());
+        tracing::info!("{} done", method.label());
     }
     let swept: Vec<Scores> = sweep()
         .into_iter()
@@ -293,6 +293,6 @@ pub(super) fn crm_laser(a: Args) -> Result<()> {
     let path = a.output.join("report.md");
     write_text(&path, &report)?;
     print!("{report}");
-    eprintln!("wrote {} and results.json", path.display());
+    tracing::info!("wrote {} and results.json", path.display());
     Ok(())
 }

@@ -96,16 +96,31 @@ pub fn mask_set(mask: &mut SlotMask, slot: usize) {
 
 /// Iterates the set slots of `mask` in increasing order.
 pub fn mask_slots(mask: &SlotMask) -> impl Iterator<Item = usize> + '_ {
-    mask.iter().enumerate().flat_map(|(w, &bits)| {
-        let mut rest = bits;
-        std::iter::from_fn(move || {
-            (rest != 0).then(|| {
-                let b = rest.trailing_zeros() as usize;
-                rest &= rest - 1;
-                w * 64 + b
-            })
-        })
-    })
+    MaskSlots { mask, word: 0, bits: mask[0] }
+}
+
+/// [`mask_slots`]'s iterator: one word's bits at a time (a `flat_map` over the words cost a
+/// log-odds frame 3% more instructions where bricks are updated slot by slot).
+struct MaskSlots<'a> {
+    mask: &'a SlotMask,
+    /// The word being read, and its bits not yet returned.
+    word: usize,
+    bits: u64,
+}
+
+impl Iterator for MaskSlots<'_> {
+    type Item = usize;
+
+    #[inline]
+    fn next(&mut self) -> Option<usize> {
+        while self.bits == 0 {
+            self.word += 1;
+            self.bits = *self.mask.get(self.word)?;
+        }
+        let b = self.bits.trailing_zeros() as usize;
+        self.bits &= self.bits - 1;
+        Some(self.word * 64 + b)
+    }
 }
 
 /// Checks a voxel edge: a positive, finite number of metres.
@@ -207,18 +222,15 @@ impl<V: Copy + Default> Brick<V> {
     /// time (per slot, the mask's test and set were a twentieth of a projected log-odds frame).
     #[inline]
     pub fn update_slots(&mut self, slots: &SlotMask, init: V, mut update: impl FnMut(&mut V)) {
-        for (w, (&want, have)) in slots.iter().zip(&mut self.mask).enumerate() {
-            let mut new = want & !*have;
+        let new: SlotMask = std::array::from_fn(|w| slots[w] & !self.mask[w]);
+        for slot in mask_slots(&new) {
+            self.values[slot] = init;
+        }
+        for (have, want) in self.mask.iter_mut().zip(slots) {
             *have |= want;
-            while new != 0 {
-                self.values[w * 64 + new.trailing_zeros() as usize] = init;
-                new &= new - 1;
-            }
-            let mut all = want;
-            while all != 0 {
-                update(&mut self.values[w * 64 + all.trailing_zeros() as usize]);
-                all &= all - 1;
-            }
+        }
+        for slot in mask_slots(slots) {
+            update(&mut self.values[slot]);
         }
     }
 

@@ -508,6 +508,11 @@ impl RunReport {
         self.tiles += other.tiles;
         self.rays += other.rays;
     }
+
+    /// The debug line of sweep `sweep`: what was traced since the report was `start`.
+    fn log_sweep(&self, sweep: usize, start: &RunReport) {
+        tracing::debug!("sweep {sweep}: {} tiles, {} rays traced", self.tiles - start.tiles, self.rays - start.rays);
+    }
 }
 
 /// One tile's trace, before it is applied.
@@ -654,7 +659,7 @@ impl MrfEngine {
             self.log_floor = self.epoch + 1;
         }
         for sweep in 0..max_sweeps {
-            let (before, rays) = (report.tiles, report.rays);
+            let start = report;
             for i in 0..self.keyframes.len() {
                 let dirty = self.dirty_tiles(i, tolerance);
                 report.add(self.update_tiles(i, &dirty));
@@ -664,9 +669,9 @@ impl MrfEngine {
             let seen = self.log.partition_point(|&(e, _)| e <= checked);
             self.log.drain(..seen);
             report.sweeps += 1;
-            tracing::debug!("sweep {}: {} tiles, {} rays traced", sweep + 1, report.tiles - before, report.rays - rays);
+            report.log_sweep(sweep + 1, &start);
             progress(sweep + 1, max_sweeps);
-            if report.tiles == before {
+            if report.tiles == start.tiles {
                 report.converged = true;
                 break;
             }
@@ -701,13 +706,13 @@ impl MrfEngine {
         let total = iterations * active.len();
         let mut report = RunReport { sweeps: iterations, ..Default::default() };
         for round in 0..iterations {
-            let (tiles, rays) = (report.tiles, report.rays);
+            let start = report;
             for (n, &i) in active.iter().enumerate() {
                 let all: Vec<usize> = (0..self.keyframes[i].tiles.len()).collect();
                 report.add(self.update_tiles(i, &all));
                 progress(round * active.len() + n + 1, total);
             }
-            tracing::debug!("sweep {}: {} tiles, {} rays traced", round + 1, report.tiles - tiles, report.rays - rays);
+            report.log_sweep(round + 1, &start);
         }
         self.changed.clear();
         self.last_run = active.len();

@@ -21,7 +21,8 @@
 //! - Schedules: [`MrfEngine::run`] runs a fixed number of sweeps, each re-tracing every tile
 //!   of every keyframe in turn. [`MrfEngine::run_until`] is change-driven: a sweep re-traces
 //!   only the tiles for which some voxel's marginal moved by more than a tolerance since
-//!   they saw it (or which new bricks may lie on), until no tile is left. Both trace one
+//!   they saw it, whose own last update damping held back by more than it, or which new
+//!   bricks may lie on, until no tile is left. Both trace one
 //!   keyframe's tiles against the same `S`, then apply them in tile order, damped:
 //!   [`MrfParams::damping`] of a tile's old message (log-odds) stays, and a message whose
 //!   change keeps reversing direction is damped more (loopy belief propagation can cycle
@@ -292,6 +293,9 @@ struct Tile {
     suspect: bool,
     /// The largest camera z its rays reach (m); new bricks beyond it cannot affect it.
     z_max: f32,
+    /// How far (in marginal) its last update fell short of what its rays computed, where
+    /// damping held a message back: the largest move the rest of the step would make.
+    held_back: f32,
 }
 
 impl Tile {
@@ -636,8 +640,10 @@ impl MrfEngine {
     /// Belief propagation until nothing moves (change-driven). Each sweep visits the
     /// keyframes in turn and re-traces only their tiles for which, since the tile last traced,
     /// some voxel its rays reach moved by more than `tolerance` in marginal (by any tile,
-    /// the tile's own last update included), or which are stale (new, moved, or near a brick
-    /// that came or went). Stops when a sweep traces nothing, or after `max_sweeps` sweeps.
+    /// the tile's own last update included), whose last update damping held back by more than
+    /// `tolerance` (a voxel whose marginal sits at 0 or 1 hardly moves while a damped message
+    /// crawls towards the other side), or which are stale (new, moved, or near a brick that
+    /// came or went). Stops when a sweep traces nothing, or after `max_sweeps` sweeps.
     /// Changes below the tolerance are not followed, so the result is within a small multiple
     /// of it of a fixed point, not at it.
     pub fn run_until(&mut self, tolerance: f64, max_sweeps: usize) -> RunReport {
@@ -986,7 +992,9 @@ impl MrfEngine {
             .into_par_iter()
             .filter(|&t| {
                 let tile = &kf.tiles[t];
-                tile.stale || (tile.suspect && self.tile_is_dirty(tile, tolerance, recent.as_ref()))
+                tile.stale
+                    || tile.held_back as f64 > tolerance
+                    || (tile.suspect && self.tile_is_dirty(tile, tolerance, recent.as_ref()))
             })
             .collect();
         self.keyframes[i].tiles.iter_mut().for_each(|t| t.suspect = false);
@@ -1195,6 +1203,12 @@ impl MrfEngine {
                         let step = (1.0 - keep) * change / (1u32 << level) as f64;
                         entry.set_message((e.message() as f64 + step) as f32);
                         entry.set_damping(level, calm, step);
+                        if step != change {
+                            // The voxel's `S` after this update, and where the whole step would take it.
+                            let after = voxel.seen as f64 + (entry.message() - e.message()) as f64;
+                            let rest = (sigmoid(after + change - step) - sigmoid(after)).abs();
+                            new.held_back = new.held_back.max(rest as f32);
+                        }
                     }
                     None => entry.set_message(voxel.sum as f32),
                 }

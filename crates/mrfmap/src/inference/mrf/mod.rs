@@ -1205,7 +1205,7 @@ impl MrfEngine {
                         entry.set_damping(level, calm, step);
                         if step != change {
                             // The voxel's `S` after this update, and where the whole step would take it.
-                            let after = voxel.seen as f64 + (entry.message() - e.message()) as f64;
+                            let after = voxel.seen as f64 + step;
                             let rest = (sigmoid(after + change - step) - sigmoid(after)).abs();
                             new.held_back = new.held_back.max(rest as f32);
                         }

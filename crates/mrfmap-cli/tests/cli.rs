@@ -1073,3 +1073,45 @@ fn protocols_targets_metrics_and_clamp() {
     let o = run(&["eval", s(&map), s(&data), "--views", "1", "--sigma-model"]);
     assert!(!o.status.success() && stderr(&o).contains("--sigma-model needs a noise model"), "{}", stderr(&o));
 }
+
+/// `build --online`: the frames fed in order on the MRF's online schedule, one timings row per
+/// keyframe within the tile budget, the backlog written down, and a map that `--finish`
+/// settles; the options only where they mean something.
+#[test]
+fn mrf_online_build_writes_timings_and_honours_the_budget() {
+    let dir = workdir("mrf-online");
+    let data = dataset(&dir);
+    let (map, timings) = (dir.join("online.mrfmap"), dir.join("t.csv"));
+    let base = ["build", s(&data), "-o", s(&map), "--resolution", "0.05", "--engine", "mrf", "--online"];
+    let o = run(&[&base[..], &["--budget-tiles", "25", "--timings", s(&timings), "-q"]].concat());
+    assert!(o.status.success(), "{}", stderr(&o));
+    let csv = std::fs::read_to_string(&timings).unwrap();
+    let rows: Vec<Vec<&str>> = csv.lines().skip(1).map(|l| l.split(',').collect()).collect();
+    assert_eq!(csv.lines().next(), Some("keyframe,ms,traced_tiles,backlog_tiles"));
+    assert_eq!(rows.len(), 4, "{csv}");
+    for (n, row) in rows.iter().enumerate() {
+        assert_eq!(row[0], (n + 1).to_string());
+        assert!(row[1].parse::<f64>().unwrap() > 0.0, "{csv}");
+        // 80x60 pixels: 20 own tiles, at most 25 in all.
+        let traced: usize = row[2].parse().unwrap();
+        assert!((20..=25).contains(&traced), "{csv}");
+    }
+    assert!(rows[3][3].parse::<usize>().unwrap() > 0, "a 5-tile budget leaves a backlog: {csv}");
+    let online = mrfmap::map::Map::load(&map).unwrap();
+    assert!(online.occupied_count() > 0);
+    // --finish infers the rest before writing; the map differs from the unfinished one.
+    let finished = dir.join("finished.mrfmap");
+    let o = run(&[&base[..2], &["-o", s(&finished)], &base[4..], &["--budget-tiles", "25", "--finish", "-q"]].concat());
+    assert!(o.status.success(), "{}", stderr(&o));
+    let finished = mrfmap::map::Map::load(&finished).unwrap();
+    let differ = online.voxels.iter().filter(|(k, v)| finished.voxels.get(*k) != Some(v)).count();
+    assert!(differ > 0);
+    build_fails(&data, &["--budget-ms", "10"], &["--online"]);
+    build_fails(&data, &["--online"], &["--engine mrf"]);
+    build_fails(&data, &["--engine", "mrf", "--online", "--budget-ms=-5"], &["budget-ms"]);
+    build_fails(
+        &data,
+        &["--engine", "mrf", "--online", "--timings", s(&dir.join("no/such/t.csv"))],
+        &["output folder"],
+    );
+}

@@ -9,7 +9,9 @@ use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
 use mrfmap::frames::{Beam, Camera, DepthImage, Frame, NoiseModel, Pose, RangeScan};
-use mrfmap::inference::{CrmParams, Engine, EngineConfig, EngineKind, KeyframeId, MrfEngine, MrfParams, new_engine};
+use mrfmap::inference::{
+    Budget, CrmParams, Engine, EngineConfig, EngineKind, KeyframeId, MrfEngine, MrfParams, new_engine,
+};
 use mrfmap::map::Map;
 use mrfmap::outputs::{
     LiveEngine, OctomapFormat, PlyOptions, PointAnswer, QueryOptions, VoxelSource, query_box, query_points,
@@ -187,15 +189,21 @@ impl Mapper {
         Ok(Mapper { inner: Mutex::new(inner), camera, noise, frames: Mutex::new(0) })
     }
 
-    /// Adds a depth image taken from `pose`; returns its id (the MRF keyframe id).
-    #[pyo3(signature = (depth, pose, depth_scale=None))]
+    /// Adds a depth image taken from `pose`; returns its id (the MRF keyframe id). MRF with
+    /// `budget_ms` / `budget_tiles`: the online schedule runs within that budget.
+    #[pyo3(signature = (depth, pose, depth_scale=None, budget_ms=None, budget_tiles=None))]
+    #[allow(clippy::too_many_arguments)]
     fn add_frame(
         &self,
         py: Python<'_>,
         depth: &Bound<'_, PyAny>,
         pose: &Bound<'_, PyAny>,
         depth_scale: Option<f64>,
+        budget_ms: Option<f64>,
+        budget_tiles: Option<usize>,
     ) -> PyResult<u64> {
+        let budget =
+            (budget_ms.is_some() || budget_tiles.is_some()).then_some(Budget { ms: budget_ms, tiles: budget_tiles });
         let (w, h) = (self.camera.width as usize, self.camera.height as usize);
         let values: Vec<f32> = if let Some((rows, cols, v)) = floats_2d(depth) {
             if depth_scale.is_some() {
@@ -232,9 +240,14 @@ impl Mapper {
             noise: self.noise.clone(),
         };
         let id = py
-            .detach(|| match &mut *self.lock() {
-                Inner::Mrf(e) => e.add_keyframe(frame).map(|k| k.0),
-                Inner::Online(e) => e.integrate(&frame).map(|_| frame.index as u64),
+            .detach(|| match (&mut *self.lock(), budget) {
+                (Inner::Mrf(e), None) => e.add_keyframe(frame).map(|k| k.0),
+                (Inner::Mrf(e), Some(b)) => e.add_keyframe_within(frame, b).map(|(k, _)| k.0),
+                (Inner::Online(e), None) => e.integrate(&frame).map(|_| frame.index as u64),
+                (Inner::Online(e), Some(_)) => Err(mrfmap::Error::Invalid(format!(
+                    "budget_ms / budget_tiles are for the mrf engine's online schedule; {} integrates each frame whole",
+                    e.name()
+                ))),
             })
             .map_err(py_err)?;
         *count += 1;
@@ -384,6 +397,30 @@ impl Mapper {
                 Ok((r.sweeps, r.keyframe_updates, r.rays, r.converged))
             })
         })
+    }
+
+    /// MRF: spends idle time on the online schedule's backlog (tiles never traced first);
+    /// no budget runs until settled. Returns what it did as a dict.
+    #[pyo3(signature = (ms=None, tiles=None))]
+    fn refine<'py>(&self, py: Python<'py>, ms: Option<f64>, tiles: Option<usize>) -> PyResult<Bound<'py, PyDict>> {
+        let r = py.detach(|| self.mrf_only("refine", |e| e.refine(Budget { ms, tiles })))?;
+        let d = PyDict::new(py);
+        d.set_item("tiles", r.tiles)?;
+        d.set_item("own_tiles", r.own_tiles)?;
+        d.set_item("rays", r.rays)?;
+        d.set_item("backlog", r.backlog)?;
+        d.set_item("settled", r.settled)?;
+        d.set_item("ms", r.elapsed.as_secs_f64() * 1e3)?;
+        Ok(d)
+    }
+
+    /// MRF: tiles waiting in the online schedule's backlog (0 for the other engines).
+    #[getter]
+    fn backlog(&self) -> usize {
+        match &*self.lock() {
+            Inner::Mrf(e) => e.backlog(),
+            Inner::Online(_) => 0,
+        }
     }
 
     /// The current map.

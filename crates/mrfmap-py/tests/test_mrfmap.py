@@ -71,6 +71,30 @@ def test_mrf_remove_equals_never_added_and_repose():
         m.remove_keyframe(12345)
 
 
+def test_mrf_online_budget_backlog_and_refine():
+    m = mrfmap.Mapper(0.05, engine="mrf", **CAM)
+    # 80x60 pixels: 20 tiles per keyframe, traced whole whatever the budget.
+    for i in range(4):
+        m.add_frame(wall(2.02 + 0.01 * i), pose(0.02 * i), budget_tiles=22)
+    assert m.backlog > 0
+    occ, _ = m.query(np.array([[0.0, 0.0, 1.85], [0.0, 0.0, 2.02]]))
+    assert occ[0] < 0.5 < occ[1]  # readable at once
+    r = m.refine(tiles=5)
+    assert r["tiles"] <= 5 and r["own_tiles"] == 0
+    r = m.refine()
+    assert r["settled"] and r["backlog"] == 0 and m.backlog == 0
+    assert set(r) == {"tiles", "own_tiles", "rays", "backlog", "settled", "ms"}
+    m.add_frame(wall(), pose(0.1), budget_ms=5000.0)
+    with pytest.raises(ValueError, match="budget"):
+        m.refine(ms=-1.0)
+    lo = mrfmap.Mapper(0.05, **CAM)
+    with pytest.raises(ValueError, match="mrf"):
+        lo.add_frame(wall(), pose(), budget_ms=10.0)
+    with pytest.raises(ValueError, match="mrf"):
+        lo.refine()
+    assert lo.backlog == 0
+
+
 def test_files_round_trip(tmp_path):
     m = mrfmap.Mapper(0.05, engine="crm", particles=15, **CAM)
     m.add_frame(wall(), np.eye(4))

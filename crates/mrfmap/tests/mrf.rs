@@ -551,3 +551,69 @@ fn converged_means_another_sweep_moves_nothing() {
         assert!(moved <= 1.5 * tol, "seed {seed:?}: one more sweep moved a marginal by {moved}");
     }
 }
+
+/// The online schedule with no budget settles each keyframe: after adds, a removal and a
+/// re-pose it lands where the full schedule run to convergence lands, as `run_until` does.
+#[test]
+fn online_with_no_budget_lands_where_the_full_schedule_lands() {
+    use mrfmap::inference::Budget;
+    let s = scene(&format!("{SMALL_CAMERA}{BOX_SCENE}"));
+    let fr = frames(&s, &s.views, None);
+    let tol = 1e-4;
+    let params = MrfParams { tolerance: Some(tol), ..MrfParams::default() };
+    let mut e = MrfEngine::new(0.05, Default::default(), params).unwrap();
+    for f in &fr {
+        let (_, r) = e.add_keyframe_within(f.clone(), Budget::UNLIMITED).unwrap();
+        assert!(r.settled && r.backlog == 0 && r.own_tiles == 20, "{r:?}");
+    }
+    let d_add = max_difference(&e, &build_mrf(&fr, 0.05, 300));
+    let ids = e.keyframe_ids();
+    e.remove_keyframe(ids[1]).unwrap();
+    let last = *ids.last().unwrap();
+    e.set_pose(last, Pose::new([0.1, 0.0, 0.0].into(), [0.0, 0.0, 0.05].into()) * fr[4].pose).unwrap();
+    e.set_pose(last, fr[4].pose).unwrap();
+    let r = e.refine(Budget::UNLIMITED).unwrap();
+    assert!(r.settled && r.own_tiles == 20, "{r:?}");
+    let rest: Vec<Frame> = fr.iter().enumerate().filter(|(i, _)| *i != 1).map(|(_, f)| f.clone()).collect();
+    let d_rest = max_difference(&e, &build_mrf(&rest, 0.05, 300));
+    eprintln!("largest marginal differences: adds {d_add:.2e}, remove and re-pose {d_rest:.2e}");
+    assert!(d_add < 50.0 * tol && d_rest < 50.0 * tol, "{d_add} {d_rest}");
+}
+
+/// Under a tile budget the online schedule traces each new keyframe whole and at most the
+/// budget in all, keeps the rest in its backlog, works it off in `refine`, and gives
+/// bit-identical marginals on one thread and on several.
+#[test]
+fn online_budget_is_kept_and_thread_count_does_not_matter() {
+    use mrfmap::inference::Budget;
+    let s = scene(&format!("{SMALL_CAMERA}{BOX_SCENE}"));
+    let fr = frames(&s, &s.views, Some(4));
+    let build = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+        pool.install(|| {
+            let mut e = MrfEngine::new(0.05, Default::default(), MrfParams::default()).unwrap();
+            let mut backlogs = Vec::new();
+            for f in &fr {
+                let (_, r) = e.add_keyframe_within(f.clone(), Budget::tiles(30)).unwrap();
+                assert_eq!(r.own_tiles, 20, "{r:?}");
+                assert!(r.tiles <= 30, "{r:?}");
+                assert_eq!(r.backlog, e.backlog());
+                backlogs.push(r.backlog);
+            }
+            let id = e.keyframe_ids()[2];
+            e.remove_keyframe(id).unwrap();
+            let r = e.refine(Budget::tiles(25)).unwrap();
+            assert!(r.own_tiles == 0 && r.tiles <= 25, "{r:?}");
+            let mut m: Vec<(VoxelKey, f64)> = e.marginals().collect();
+            m.sort_by_key(|(k, _)| k.0);
+            (m, backlogs, e)
+        })
+    };
+    let (one, backlogs, mut e) = build(1);
+    assert!(one.len() > 1000);
+    assert!(backlogs.iter().skip(1).all(|&b| b > 0), "a 10-tile budget leaves a backlog: {backlogs:?}");
+    assert_eq!(one, build(3).0);
+    // Idle time works the backlog off.
+    let r = e.refine(Budget::UNLIMITED).unwrap();
+    assert!(r.settled && r.backlog == 0 && r.tiles > 0, "{r:?}");
+}

@@ -7,16 +7,18 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 use std::sync::Arc;
 
+use mrfmap::atomic_file::write_atomic;
 use mrfmap::frames::{Frame, NoiseModel, Poly, RangeScan};
 use mrfmap::inference::{
-    Allocation, CrmParams, Engine, EngineConfig, EngineKind, Extent, KeyframeSelection, LogOddsParams, Marking,
-    MrfParams, estimate_memory, new_engine,
+    Allocation, Budget, CrmParams, Engine, EngineConfig, EngineKind, Extent, KeyframeSelection, LogOddsParams, Marking,
+    MrfEngine, MrfParams, estimate_memory, new_engine,
 };
 use mrfmap::limits;
 use mrfmap::map::Map;
 use mrfmap::rays::{Aabb, RayLimits};
 use mrfmap::source::bag::{Bag, BagOptions, bag_frames, bag_scans};
 use mrfmap::source::{BeamSpacing, CarmenLog, CarmenOptions, Dataset, Misses};
+use std::io::Write;
 
 /// Options that shape how any map is built from a dataset.
 #[derive(clap::Args, Clone)]
@@ -305,6 +307,44 @@ pub struct Args {
     laser: LaserOptions,
     #[command(flatten)]
     bag: BagArgs,
+    #[command(flatten)]
+    online: OnlineArgs,
+}
+
+/// The MRF's online schedule (`--online`).
+#[derive(clap::Args, Clone)]
+pub struct OnlineArgs {
+    /// MRF: feed the frames in order as a robot would: each keyframe is traced as it
+    /// arrives, then belief propagation works on the tiles whose inputs moved most until
+    /// --budget-ms / --budget-tiles is spent; the rest waits for the next keyframes. The map
+    /// written is what the robot had after the last frame (no extra sweeps without --finish).
+    #[arg(long)]
+    pub online: bool,
+    /// With --online: wall-clock milliseconds per keyframe, from its arrival (decoded) to
+    /// the map being readable again, its own tracing included (the keyframe is traced whole
+    /// even when that takes longer).
+    #[arg(long, requires = "online", value_parser = super::non_negative)]
+    pub budget_ms: Option<f64>,
+    /// With --online: tiles traced per keyframe, its own included (a budget that gives the
+    /// same map on any machine). Neither budget: every keyframe is inferred until settled.
+    #[arg(long, requires = "online")]
+    pub budget_tiles: Option<usize>,
+    /// With --online: write one CSV row per keyframe: keyframe,ms,traced_tiles,backlog_tiles.
+    #[arg(long, requires = "online")]
+    pub timings: Option<PathBuf>,
+    /// With --online: after the last frame, run the batch schedule (--iterations,
+    /// --tolerance) to finish the inference before the map is written.
+    #[arg(long, requires = "online")]
+    pub finish: bool,
+}
+
+/// Fails unless `path`'s folder exists (checked before the work, not after it).
+pub fn check_output_folder(path: &std::path::Path) -> Result<()> {
+    let folder = path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(std::path::Path::new("."));
+    if !folder.is_dir() {
+        bail!("{}: the output folder {} does not exist", path.display(), folder.display());
+    }
+    Ok(())
 }
 
 /// What a build did.
@@ -502,14 +542,80 @@ pub fn build_map<R: Reading>(
     Ok(BuildReport { map: engine.map(), frames: indices.len(), integrate_time })
 }
 
+/// Feeds the frames `indices` (fetched through `reading`) to an MRF engine in order on its
+/// online schedule ([`MrfEngine::add_keyframe_within`]), with a progress bar of keyframes,
+/// per-keyframe milliseconds and backlog, and the timings CSV `online` asks for.
+pub fn build_online(
+    indices: &[usize],
+    config: &EngineConfig,
+    reading: &mut dyn FnMut(usize) -> mrfmap::Result<Frame>,
+    online: &OnlineArgs,
+) -> Result<BuildReport> {
+    config.limits.validate()?;
+    let mut engine = MrfEngine::new(config.resolution, config.limits, config.mrf)?;
+    let budget = Budget { ms: online.budget_ms, tiles: online.budget_tiles };
+    let bar = crate::progress::bar(indices.len() as u64, "mrf online");
+    let mut rows = Vec::new();
+    let mut integrate_time = Duration::ZERO;
+    for &i in indices {
+        let frame = reading(i)?;
+        if engine.is_new_keyframe(&frame.pose) {
+            let (_, r) = engine.add_keyframe_within(frame, budget).with_context(|| format!("integrating frame {i}"))?;
+            integrate_time += r.elapsed;
+            rows.push(r);
+            bar.set_message(format!(
+                "kf {} {:.0} ms, backlog {}",
+                rows.len(),
+                r.elapsed.as_secs_f64() * 1e3,
+                r.backlog
+            ));
+            tracing::debug!("frame {i}: keyframe {}: {r:?}", rows.len());
+        }
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let (last_backlog, settled) = rows.last().map_or((0, true), |r| (r.backlog, r.settled));
+    if online.finish {
+        let t = Instant::now();
+        engine.finish()?;
+        integrate_time += t.elapsed();
+    } else if !settled {
+        tracing::info!(
+            "MRF online: {last_backlog} tiles still in the backlog (--finish would infer them before writing)"
+        );
+    }
+    if let Some(path) = &online.timings {
+        write_atomic(path, |w| {
+            writeln!(w, "keyframe,ms,traced_tiles,backlog_tiles")?;
+            for (n, r) in rows.iter().enumerate() {
+                writeln!(w, "{},{:.3},{},{}", n + 1, r.elapsed.as_secs_f64() * 1e3, r.tiles, r.backlog)?;
+            }
+            Ok(())
+        })?;
+    }
+    Ok(BuildReport { map: engine.map(), frames: indices.len(), integrate_time })
+}
+
 pub fn run(a: Args) -> Result<()> {
     let kind: EngineKind = a.engine.parse()?;
-    // Found out before the work, not after it.
-    let folder = a.output.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(std::path::Path::new("."));
-    if !folder.is_dir() {
-        bail!("{}: the output folder {} does not exist", a.output.display(), folder.display());
+    check_output_folder(&a.output)?;
+    let online = a.online.online.then_some(&a.online);
+    if let Some(o) = online {
+        if kind != EngineKind::Mrf {
+            bail!("--online is the MRF's schedule (--engine mrf); log-odds and CRM integrate each frame as it comes");
+        }
+        if !BagArgs::is_bag(&a.dataset) && a.dataset.is_file() || a.bag.scan_topic.is_some() {
+            bail!("{}: --online needs depth images (a dataset or a bag's --depth-topic)", a.dataset.display());
+        }
+        if let Some(t) = &o.timings {
+            check_output_folder(t)?;
+        }
     }
     let config = a.options.config(kind, a.resolution)?;
+    let build = |indices: &[usize], reading: &mut dyn FnMut(usize) -> mrfmap::Result<Frame>| match online {
+        Some(o) => build_online(indices, &config, reading, o),
+        None => build_map(indices, &config, reading),
+    };
     let (report, indices_used) = if let (true, Some(topic)) = (BagArgs::is_bag(&a.dataset), &a.bag.scan_topic) {
         let scans = a.bag.scans(&a.dataset, topic, a.options.noise.as_deref())?;
         let indices = select_frames(scans.len(), &a.frames, &a.exclude)?;
@@ -531,7 +637,7 @@ pub fn run(a: Args) -> Result<()> {
             frames.len(),
             a.resolution
         );
-        (build_map(&indices, &config, |i| Ok(frames[i].clone()))?, indices)
+        (build(&indices, &mut |i| Ok(frames[i].clone()))?, indices)
     } else if a.dataset.is_file() {
         let log = a.laser.open(&a.dataset)?;
         let scans = a.laser.scans(&log, a.resolution, a.options.noise.as_deref())?;
@@ -557,7 +663,7 @@ pub fn run(a: Args) -> Result<()> {
             dataset.len(),
             a.resolution
         );
-        (build_map(&indices, &config, |i| dataset.frame(i))?, indices)
+        (build(&indices, &mut |i| dataset.frame(i))?, indices)
     };
     let mut map = report.map;
     // What went in, so `eval` can tell held-out views from views the map was built from.

@@ -42,12 +42,20 @@ class Mapper:
         depth: npt.NDArray[np.float32] | npt.NDArray[np.float64] | npt.NDArray[np.uint16],
         pose: npt.NDArray[np.float64],
         depth_scale: Optional[float] = None,
+        budget_ms: Optional[float] = None,
+        budget_tiles: Optional[int] = None,
     ) -> int:
         """Adds a depth image of shape (height, width) taken from ``pose`` (4x4).
 
         Float depth is in metres (0, NaN and infinity: no measurement); uint16 depth needs
         ``depth_scale`` (units per metre). Returns the frame's id (the keyframe id for the
         MRF engine). Raises ``ValueError`` on a wrong dtype or shape, a NaN or non-rigid pose.
+
+        MRF with ``budget_ms`` and/or ``budget_tiles``: the online schedule. The keyframe is
+        traced whole as it arrives, then belief propagation works on the 16x16-pixel tiles
+        whose inputs moved most until the budget (milliseconds from the call, tiles traced,
+        the keyframe's own included) is spent; the rest waits in ``backlog`` for the next
+        frames and ``refine``. The map is readable on return. ``ValueError`` for other engines.
         """
     def add_scan(
         self,
@@ -89,6 +97,14 @@ class Mapper:
         """MRF only: change-driven belief propagation until no marginal moves by more than
         ``tolerance``, re-tracing only the 16x16-pixel tiles of keyframes whose voxels moved
         since they last traced. Returns ``(sweeps, keyframe_updates, rays_traced, converged)``."""
+    def refine(self, ms: Optional[float] = None, tiles: Optional[int] = None) -> Dict[str, Any]:
+        """MRF only: spends idle time (``ms`` milliseconds and/or ``tiles`` traced tiles; neither:
+        until settled) on the online schedule's backlog, tiles never traced (new or re-posed
+        keyframes) first. Returns ``{"tiles", "own_tiles", "rays", "backlog", "settled", "ms"}``."""
+    @property
+    def backlog(self) -> int:
+        """MRF: tiles waiting in the online schedule's backlog, as its last check found them
+        (0 for the other engines)."""
     def map(self) -> Map:
         """The current map (a snapshot)."""
     def query(

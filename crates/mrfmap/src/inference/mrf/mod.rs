@@ -22,8 +22,11 @@
 //!   of every keyframe in turn. [`MrfEngine::run_until`] is change-driven: a sweep re-traces
 //!   only the tiles for which some voxel's marginal moved by more than a tolerance since
 //!   they saw it, whose own last update damping held back by more than it, or which new
-//!   bricks may lie on, until no tile is left. Both trace one
-//!   keyframe's tiles against the same `S`, then apply them in tile order, damped:
+//!   bricks may lie on, until no tile is left. The online schedule (`online.rs`:
+//!   [`MrfEngine::add_keyframe_within`], [`MrfEngine::refine`]) is anytime work under a
+//!   [`Budget`]: a new keyframe's tiles first, then the tiles whose inputs moved most, the
+//!   rest kept in a backlog for later. All trace one keyframe's tiles against the same `S`,
+//!   then apply them in tile order, damped:
 //!   [`MrfParams::damping`] of a tile's old message (log-odds) stays, and a message whose
 //!   change keeps reversing direction is damped more (loopy belief propagation can cycle
 //!   where voxels compete for one surface). Which tiles a change may affect is found by
@@ -37,6 +40,28 @@
 //!   would double-count). A new brick marks stale the tiles of other keyframes whose rays may
 //!   cross it (the brick projected into their images, nearer than their rays reach); a freed
 //!   brick leaves every tile, and the tiles that reached it are marked stale.
+//!
+//! **A tile's life, and the change clock.** The engine counts keyframe updates in an
+//! `epoch`. A tile is
+//! - *stale* when it must be traced whatever moved: never traced (`traced_at == 0`: a new or
+//!   re-posed keyframe's), or a brick its rays may cross came (a new keyframe allocated it) or
+//!   went (its entries there were dropped);
+//! - *suspect* while a check looks at it: a brick logged since its keyframe's last check
+//!   (`checked_at`) projects onto it;
+//! - *dirty* when a check finds a voxel of it whose marginal moved by more than the tolerance
+//!   since the `seen` value it traced with (`largest_move`), or it is stale, or its last
+//!   update was *held back* by damping by more than the tolerance;
+//! - *in the backlog* (online schedule) while its `priority`, the largest such move the
+//!   checks found, is above the tolerance; a trace resets it.
+//!
+//! Every change to a sum goes through `apply_run`, which compares the voxel with the `logged`
+//! copy of its sum: past a quarter of the tolerance, the brick is stamped with the epoch
+//! (`stamps`) and appended to the `log`. A check of keyframe `k` reads the log after
+//! `checked_at`; log entries every keyframe has checked are dropped (`trim_log`). When the log
+//! outgrows a few entries per brick it is cleared and `log_floor` raised: keyframes checked
+//! before the floor treat every tile as suspect and read the brick stamps instead. A voxel no
+//! log entry names has moved by at most two log thresholds since any tile that reaches it was
+//! last checked, so a move that no check sees stays below 1.5 tolerances.
 //!
 //! Allocation is at brick granularity. [`Allocation::Band`] (the reference's choice, default)
 //! allocates the bricks within one voxel of each back-projected depth point, so free space

@@ -617,3 +617,30 @@ fn online_budget_is_kept_and_thread_count_does_not_matter() {
     let r = e.refine(Budget::UNLIMITED).unwrap();
     assert!(r.settled && r.backlog == 0 && r.tiles > 0, "{r:?}");
 }
+
+/// `MrfParams::work`: a batch build in the online schedule's order traces at most that many
+/// sweeps' worth of tiles, and with enough of them settles where the full schedule lands.
+#[test]
+fn work_budget_bounds_a_batch_build_and_settles_with_enough() {
+    let s = scene(&format!("{SMALL_CAMERA}{BOX_SCENE}"));
+    let fr = frames(&s, &s.views, None);
+    let tol = 1e-4;
+    let build = |work: f64| {
+        let params = MrfParams { tolerance: Some(tol), work: Some(work), ..MrfParams::default() };
+        let mut e = MrfEngine::new(0.05, Default::default(), params).unwrap();
+        for f in &fr {
+            e.add_keyframe(f.clone()).unwrap();
+        }
+        e.finish().unwrap();
+        e
+    };
+    // 5 keyframes of 20 tiles: 1.5 sweeps' worth is 150 traces, the first 100 of them the
+    // tiles' first traces; what is left waits in the backlog.
+    let short = build(1.5);
+    assert!(short.backlog() > 0);
+    let long = build(1000.0);
+    assert_eq!(long.backlog(), 0);
+    let d = max_difference(&long, &build_mrf(&fr, 0.05, 300));
+    assert!(d < 50.0 * tol, "largest marginal difference {d}");
+    assert!(max_difference(&short, &long) > 10.0 * tol, "1.5 sweeps should not have settled");
+}

@@ -57,6 +57,11 @@ pub struct MapOptions {
     /// most --iterations sweeps. A log line says the sweeps, tiles and rays it traced.
     #[arg(long)]
     pub tolerance: Option<f64>,
+    /// MRF: trace every tile once, then the tiles whose voxels moved most first, for at most
+    /// this many sweeps' worth of tile traces in all (stopping early when nothing moves by
+    /// more than the tolerance): the online schedule's order, used for a batch build.
+    #[arg(long, value_parser = super::positive)]
+    pub work: Option<f64>,
     /// MRF: trace one ray per block of pixels where pixels are much smaller than voxels: the
     /// largest block (2x2 up to 8x8) whose rays lie at most this many voxel edges apart at a
     /// tile's nearest depth; 0 (default) traces every pixel. 0.5 builds 3x faster at 0.05 m
@@ -133,6 +138,7 @@ impl MapOptions {
                 damping: self.damping,
                 ray_spacing: self.ray_spacing,
                 tolerance,
+                work: self.work,
                 min_evidence: self.min_evidence,
             },
             crm: CrmParams { particles: self.particles as usize },

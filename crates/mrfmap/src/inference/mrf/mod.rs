@@ -159,6 +159,12 @@ pub struct MrfParams {
     /// [`MrfEngine::run_until`] with tolerance `t` and at most `iterations` sweeps; with
     /// `None`, `iterations` full sweeps ([`MrfEngine::run`]).
     pub tolerance: Option<f64>,
+    /// With `Some(w)`, [`Engine::finish`] runs the online schedule's order instead
+    /// ([`MrfEngine::refine`]): every tile traced once, then the largest moves first, for at
+    /// most `w` times as many tile traces as the keyframes have tiles in all (the first trace
+    /// included), stopping early when nothing moves by more than the tolerance. Takes
+    /// precedence over `tolerance` and `iterations`.
+    pub work: Option<f64>,
     /// A voxel whose `S` lies within this many log-odds of the prior's is unknown:
     /// [`Engine::map`] leaves it out. The default, `ln 3` ([`DEFAULT_MIN_EVIDENCE`]), is
     /// where Kass and Raftery's scale of evidence (JASA 1995) ends "not worth more than a
@@ -182,6 +188,7 @@ impl Default for MrfParams {
             damping: 0.0,
             ray_spacing: 0.0,
             tolerance: Some(DEFAULT_TOLERANCE),
+            work: None,
             min_evidence: DEFAULT_MIN_EVIDENCE,
         }
     }
@@ -586,6 +593,9 @@ impl MrfEngine {
         }
         if !(params.min_evidence >= 0.0 && params.min_evidence.is_finite()) {
             return Err(Error::Invalid(format!("MRF minimum evidence must be 0 or more, got {}", params.min_evidence)));
+        }
+        if params.work.is_some_and(|w| !(w > 0.0 && w.is_finite())) {
+            return Err(Error::Invalid(format!("MRF work must be a positive number of sweeps, got {:?}", params.work)));
         }
         if !(0.0..1.0).contains(&params.damping) {
             return Err(Error::Invalid(format!("MRF damping must be in [0, 1), got {}", params.damping)));
@@ -1523,6 +1533,9 @@ impl Engine for MrfEngine {
     }
 
     fn finish_with_progress(&mut self, progress: &mut dyn FnMut(usize, usize)) -> Result<()> {
+        if let Some(w) = self.params.work {
+            return self.finish_by_work(w, progress);
+        }
         let r = match self.params.tolerance {
             Some(t) => self.run_until_with_progress(t, self.params.iterations, progress),
             None => self.run_with_progress(self.params.iterations, progress),
@@ -1645,6 +1658,8 @@ pub(super) mod tests {
             (MrfParams { ray_spacing: f64::NAN, ..MrfParams::default() }, "ray spacing"),
             (MrfParams { tolerance: Some(0.0), ..MrfParams::default() }, "tolerance"),
             (MrfParams { damping: 1.0, ..MrfParams::default() }, "damping"),
+            (MrfParams { work: Some(0.0), ..MrfParams::default() }, "work"),
+            (MrfParams { work: Some(f64::INFINITY), ..MrfParams::default() }, "work"),
         ] {
             let err = MrfEngine::new(0.05, Default::default(), params).err().expect("refused");
             assert!(err.to_string().contains(word), "{err}");

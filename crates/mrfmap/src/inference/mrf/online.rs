@@ -31,6 +31,8 @@ use std::time::{Duration, Instant};
 use rayon::prelude::*;
 
 use super::{DEFAULT_TOLERANCE, KeyframeId, MrfEngine, Tile, largest_move};
+#[cfg(doc)]
+use super::{Engine, MrfParams};
 use crate::error::{Error, Result};
 use crate::frames::Frame;
 
@@ -216,6 +218,27 @@ impl MrfEngine {
             report.backlog
         );
         report
+    }
+
+    /// [`Engine::finish`] with [`MrfParams::work`] `w`: the online schedule with a budget of
+    /// `w` times the keyframes' tiles, in chunks so that `progress(tiles traced, budget)` moves.
+    pub(super) fn finish_by_work(&mut self, w: f64, progress: &mut dyn FnMut(usize, usize)) -> Result<()> {
+        let total = (w * self.keyframes.iter().map(|k| k.tiles.len()).sum::<usize>() as f64).ceil() as usize;
+        let (mut spent, mut last) = (0, StepReport::default());
+        while spent < total && !last.settled {
+            last = self.refine_from(Instant::now(), Budget::tiles((total - spent).min(8 * MAX_BATCH)));
+            spent += last.tiles;
+            progress(spent.min(total), total);
+        }
+        tracing::info!(
+            "MRF: {spent} tiles traced over {} keyframes ({w} sweeps' worth at most), {} left in the backlog{} \
+             ({} MiB of tile messages)",
+            self.keyframes.len(),
+            last.backlog,
+            if last.settled { ", settled" } else { "" },
+            self.tile_bytes() >> 20
+        );
+        Ok(())
     }
 
     /// Checks every keyframe's tiles against the changes logged since its last check and

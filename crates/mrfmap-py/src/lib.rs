@@ -144,7 +144,7 @@ impl Mapper {
 #[pymethods]
 impl Mapper {
     #[new]
-    #[pyo3(signature = (resolution, fx, fy, cx, cy, width, height, engine="logodds", noise=None, max_range=None, particles=101, iterations=mrfmap::inference::DEFAULT_MAX_SWEEPS, prior=0.1))]
+    #[pyo3(signature = (resolution, fx, fy, cx, cy, width, height, engine="logodds", noise=None, max_range=None, particles=101, iterations=mrfmap::inference::DEFAULT_SWEEPS, prior=0.1))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         resolution: f64,
@@ -367,8 +367,8 @@ impl Mapper {
         self.mrf_only("set_pose", |e| e.set_pose(KeyframeId(id), pose))
     }
 
-    /// MRF: belief propagation, by the default schedule (until converged) or `iterations`
-    /// full sweeps; the online engines have nothing to run.
+    /// MRF: belief propagation, the constructor's `iterations` full sweeps (default 3) or
+    /// `iterations` full sweeps; the online engines have nothing to run.
     #[pyo3(signature = (iterations=None))]
     fn run(&self, py: Python<'_>, iterations: Option<usize>) -> PyResult<()> {
         py.detach(|| {

@@ -33,8 +33,8 @@ pub struct MapOptions {
     #[arg(long)]
     pub noise: Option<PathBuf>,
     /// MRF: sweeps of belief propagation (at least 1). Alone: exactly N sweeps over every
-    /// tile of every keyframe. With --tolerance: at most N sweeps. Default: the engine's
-    /// schedule (README).
+    /// tile of every keyframe (default 3, the paper's). With --tolerance: at most N sweeps
+    /// (default 10).
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
     pub iterations: Option<u32>,
     /// MRF: prior occupancy of every voxel.
@@ -54,7 +54,8 @@ pub struct MapOptions {
     pub damping: f64,
     /// MRF: change-driven belief propagation: sweep until no marginal moves by more than this,
     /// re-tracing only the 16x16-pixel tiles whose voxels moved since they last traced, at
-    /// most --iterations sweeps. A log line says the sweeps, tiles and rays it traced.
+    /// most --iterations sweeps (default 10). A log line says the sweeps, tiles and rays it
+    /// traced. With --online: moves up to this are not followed (default 0.001).
     #[arg(long)]
     pub tolerance: Option<f64>,
     /// MRF: trace every tile once, then the tiles whose voxels moved most first, for at most
@@ -117,9 +118,10 @@ impl MapOptions {
         let bounds = self.bounds.as_deref().map(Aabb::parse).transpose()?;
         let allocation = if self.allocation == "full" { Allocation::Full } else { Allocation::Band };
         let d = MrfParams::default();
+        // --iterations caps --tolerance's sweeps, or alone is the number of full sweeps.
         let (iterations, tolerance) = match (self.iterations, self.tolerance) {
-            (Some(n), None) => (n as usize, None),
-            (n, t) => (n.map_or(d.iterations, |n| n as usize), t.or(d.tolerance)),
+            (n, Some(t)) => (n.map_or(mrfmap::inference::DEFAULT_MAX_SWEEPS, |n| n as usize), Some(t)),
+            (n, None) => (n.map_or(d.iterations, |n| n as usize), d.tolerance),
         };
         Ok(EngineConfig {
             kind,

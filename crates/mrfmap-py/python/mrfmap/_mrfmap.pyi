@@ -16,7 +16,7 @@ class Mapper:
     ``noise.toml`` forward sensor model (bias and std polynomials, per pixel patch when
     given); without one the MRF and CRM use ``0.002 + 0.0035 z^2`` m std, no bias.
     ``max_range`` cuts longer readings, which then only clear space. MRF: ``prior`` per
-    voxel, ``iterations`` the cap on sweeps of ``run()``; every ray is a factor (module docs
+    voxel, ``iterations`` the sweeps of ``run()``; every ray is a factor (module docs
     of ``mrfmap::inference::mrf``). The MRF's map leaves out voxels no ray has reached.
     Raises ``ValueError`` for bad parameters and ``OSError`` for unreadable files.
     """
@@ -34,7 +34,7 @@ class Mapper:
         noise: Optional[os.PathLike[str] | str] = None,
         max_range: Optional[float] = None,
         particles: int = 101,
-        iterations: int = 10,
+        iterations: int = 3,
         prior: float = 0.1,
     ) -> None: ...
     def add_frame(
@@ -90,9 +90,9 @@ class Mapper:
     def set_pose(self, id: int, pose: npt.NDArray[np.float64]) -> None:
         """MRF only: moves a keyframe to a corrected pose (after a loop closure)."""
     def run(self, iterations: Optional[int] = None) -> None:
-        """MRF: belief propagation. By default until converged (``run_until`` with tolerance
-        1e-3, at most the constructor's ``iterations`` sweeps); with ``iterations``, exactly
-        that many full sweeps over every keyframe. Other engines: nothing."""
+        """MRF: belief propagation, the constructor's ``iterations`` full sweeps over every
+        keyframe (default 3, the MRFMap paper's schedule); with ``iterations``, that many.
+        Other engines: nothing."""
     def run_until(self, tolerance: float = 1e-3, max_sweeps: int = 100) -> Tuple[int, int, int, bool]:
         """MRF only: change-driven belief propagation until no marginal moves by more than
         ``tolerance``, re-tracing only the 16x16-pixel tiles of keyframes whose voxels moved

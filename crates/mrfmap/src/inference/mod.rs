@@ -26,8 +26,8 @@ pub use crm::{CrmEngine, CrmParams, crm_ray_factors};
 pub use estimate::{Extent, estimate_memory};
 pub use logodds::{LogOddsEngine, LogOddsParams, Marking, SensorModel};
 pub use mrf::{
-    Allocation, Budget, DEFAULT_MAX_SWEEPS, DEFAULT_MIN_EVIDENCE, DEFAULT_TOLERANCE, KeyframeId, KeyframeSelection,
-    MAX_BATCH, MU_EPS, MrfEngine, MrfParams, RunReport, StepReport, TILE, ray_messages,
+    Allocation, Budget, DEFAULT_MAX_SWEEPS, DEFAULT_MIN_EVIDENCE, DEFAULT_SWEEPS, DEFAULT_TOLERANCE, KeyframeId,
+    KeyframeSelection, MAX_BATCH, MU_EPS, MrfEngine, MrfParams, RunReport, StepReport, TILE, ray_messages,
 };
 
 use crate::error::{Error, Result};

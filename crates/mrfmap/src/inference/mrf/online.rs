@@ -344,6 +344,7 @@ mod tests {
             let err = e.refine(Budget::ms(ms)).unwrap_err();
             assert!(err.to_string().contains("budget"), "{err}");
         }
-        assert!(e.refine(Budget::ms(0.0)).unwrap().settled);
+        assert_eq!(e.refine(Budget::ms(0.0)).unwrap().backlog, 0);
+        assert!(e.refine(Budget::UNLIMITED).unwrap().settled);
     }
 }

@@ -30,7 +30,9 @@ use std::time::{Duration, Instant};
 
 use rayon::prelude::*;
 
-use super::{DEFAULT_TOLERANCE, KeyframeId, MrfEngine, Tile, largest_move};
+use super::schedule::largest_move;
+use super::tiles::Tile;
+use super::{DEFAULT_TOLERANCE, KeyframeId, MrfEngine};
 #[cfg(doc)]
 use super::{Engine, MrfParams};
 use crate::error::{Error, Result};
@@ -278,7 +280,7 @@ impl MrfEngine {
 
 #[cfg(test)]
 mod tests {
-    use super::super::tests::test_scene;
+    use super::super::tests::test_frames;
     use super::*;
     use crate::inference::MrfParams;
 
@@ -289,9 +291,7 @@ mod tests {
     /// re-pose.
     #[test]
     fn the_backlog_never_loses_a_change() {
-        let scene = test_scene(5);
-        let frames: Vec<Frame> =
-            scene.views.iter().enumerate().map(|(i, p)| scene.frame(i, p, Some(i as u64))).collect();
+        let frames = test_frames(5);
         let tol = 1e-3;
         let mut e = MrfEngine::new(0.05, Default::default(), MrfParams::default()).unwrap();
         let check = |e: &mut MrfEngine, what: &str| {

@@ -1,0 +1,452 @@
+//! Tracing tiles: every ray of a tile with its cavities, the ray factor's messages
+//! ([`super::ray_messages`]), and the tile's new entries, damped against its old ones; then
+//! their changes applied to the sums in tile order.
+
+use std::ops::ControlFlow;
+
+use rayon::prelude::*;
+use rustc_hash::FxHashMap;
+
+use super::schedule::RunReport;
+use super::tiles::{CALM_TRACES, Entry, Keyframe, MAX_DAMPING_LEVEL, Tile};
+use super::{MrfEngine, ray_messages};
+use crate::inference::Engine;
+use crate::inference::{logit, sigmoid};
+use crate::map::{BRICK_EDGE, BRICK_VOXELS, Brick, BrickKey, Grid, SlotMask, VoxelKey, mask_set, mask_slots};
+use crate::rays::{FrameRays, for_each_crossing};
+
+/// One tile's trace, before it is applied.
+struct Traced {
+    /// Which tile, and what it becomes (without its epoch).
+    index: usize,
+    tile: Tile,
+    /// Per entry of `tile`, the change it makes to `S`: its new message minus its old one.
+    changes: Vec<f32>,
+    /// The changes to voxels the tile's rays no longer reach (minus their old messages).
+    gone: Vec<(VoxelKey, f32)>,
+    rays: usize,
+}
+
+/// Messages are kept away from 0 and 1 so that their log-odds stay finite.
+const MSG_EPS: f64 = 1e-6;
+
+/// Largest pixel stride of [`MrfParams::ray_spacing`] (a divisor of [`TILE`]).
+const MAX_STRIDE: u32 = 8;
+
+/// A voxel a tile's rays reach, while the tile is traced.
+#[derive(Clone, Copy)]
+struct VoxelAcc {
+    key: VoxelKey,
+    /// The tile's old message per voxel edge of length (a ray's own share per edge of it).
+    own: f32,
+    /// The tile's old entry, if it had one.
+    old: Option<Entry>,
+    /// `S` as traced.
+    seen: f32,
+    /// Summed lengths (voxel edges) and length-weighted log-odds messages of this trace.
+    length: f64,
+    sum: f64,
+}
+
+/// Per-tile buffers, reused across the tiles a thread traces.
+struct TileScratch<'a> {
+    voxels: Vec<VoxelAcc>,
+    /// Per brick the tile's rays cross, its index in `tables` ([`UNALLOCATED`] for none).
+    /// A tile's rays cross mostly the same bricks: this small table answers where the map's
+    /// large one cost a cache miss per brick of every ray (13% of a trace).
+    bricks: FxHashMap<BrickKey, u32>,
+    /// A direct-mapped cache in front of `bricks` (key, value), by a hash of the key. At
+    /// 0.01 m a ray crosses dozens of bricks and a tile's rays share most of them: probing
+    /// `bricks` for each was a fifth of a trace's profile.
+    recent: Box<[(BrickKey, u32); RECENT]>,
+    /// The first `used` are in use (the rest are kept for reuse).
+    tables: Vec<SlotTable<'a>>,
+    used: usize,
+    ray: RayScratch,
+}
+
+/// [`TileScratch::bricks`] value of a brick that is not allocated.
+const UNALLOCATED: u32 = u32::MAX;
+
+/// Entries of [`TileScratch::recent`] (a power of two).
+const RECENT: usize = 512;
+
+/// A [`TileScratch::recent`] entry holding no brick (a brick coordinate is an `i32` voxel
+/// coordinate `>> 3`, never `i32::MIN`).
+const NO_BRICK: BrickKey = BrickKey([i32::MIN; 3]);
+
+/// [`TileScratch::recent`]'s slot of brick `key`.
+#[inline]
+fn recent_slot(key: BrickKey) -> usize {
+    let [x, y, z] = key.0.map(|c| c as u32);
+    let h = x.wrapping_mul(0x9E37_79B1) ^ y.wrapping_mul(0x85EB_CA77) ^ z.wrapping_mul(0xC2B2_AE3D);
+    (h >> (32 - RECENT.trailing_zeros())) as usize
+}
+
+/// One brick's voxels among a tile's: its sums, per slot the index in
+/// [`TileScratch::voxels`] (`u32::MAX` for none), and which slots are set. A ray is traced
+/// brick by brick, so its voxels are found by one brick lookup and array indexing (a hash
+/// lookup per voxel was a tenth of a trace, and sorting the voxels afterwards another 7%).
+struct SlotTable<'a> {
+    key: BrickKey,
+    sums: Option<&'a Brick<f32>>,
+    index: Box<[u32; BRICK_VOXELS]>,
+    set: SlotMask,
+}
+
+impl Default for TileScratch<'_> {
+    fn default() -> Self {
+        TileScratch {
+            voxels: Vec::new(),
+            bricks: FxHashMap::default(),
+            recent: Box::new([(NO_BRICK, 0); RECENT]),
+            tables: Vec::new(),
+            used: 0,
+            ray: RayScratch::default(),
+        }
+    }
+}
+
+impl<'a> TileScratch<'a> {
+    fn clear(&mut self) {
+        for table in &mut self.tables[..self.used] {
+            for slot in mask_slots(&table.set) {
+                table.index[slot] = u32::MAX;
+            }
+            table.set = [0; 8];
+        }
+        self.used = 0;
+        self.bricks.clear();
+        self.recent.fill((NO_BRICK, 0));
+        self.voxels.clear();
+        self.ray.clear();
+    }
+
+    /// The table of brick `key` with its sums in `grid`, `None` if the brick is not allocated
+    /// (and has no table).
+    #[inline]
+    fn table_of(&mut self, key: BrickKey, grid: &'a Grid<f32>) -> Option<(usize, Option<&'a Brick<f32>>)> {
+        let slot = recent_slot(key);
+        let t = match self.recent[slot] {
+            (k, t) if k == key => t,
+            _ => match self.bricks.get(&key) {
+                Some(&t) => {
+                    self.recent[slot] = (key, t);
+                    t
+                }
+                None => {
+                    let t = match grid.brick(key) {
+                        Some(sums) => self.add_table(key, Some(sums)),
+                        None => UNALLOCATED,
+                    };
+                    self.remember(key, t);
+                    t
+                }
+            },
+        };
+        (t != UNALLOCATED).then(|| (t as usize, self.tables[t as usize].sums))
+    }
+
+    /// Records brick `key`'s table index `t` (or [`UNALLOCATED`]).
+    fn remember(&mut self, key: BrickKey, t: u32) {
+        self.bricks.insert(key, t);
+        self.recent[recent_slot(key)] = (key, t);
+    }
+
+    fn add_table(&mut self, key: BrickKey, sums: Option<&'a Brick<f32>>) -> u32 {
+        if self.used == self.tables.len() {
+            self.tables.push(SlotTable { key, sums, index: Box::new([u32::MAX; BRICK_VOXELS]), set: [0; 8] });
+        }
+        let table = &mut self.tables[self.used];
+        (table.key, table.sums) = (key, sums);
+        self.used += 1;
+        (self.used - 1) as u32
+    }
+
+    /// The index of voxel `key`, added with the tile's `old` entry if new (with a table for
+    /// its brick even if `grid` no longer holds it: the old message must still go).
+    #[inline]
+    fn voxel(&mut self, key: VoxelKey, old: Option<Entry>, grid: &'a Grid<f32>) -> usize {
+        let t = match self.table_of(key.brick(), grid) {
+            Some((t, _)) => t,
+            None => {
+                let t = self.add_table(key.brick(), None);
+                self.remember(key.brick(), t);
+                t as usize
+            }
+        };
+        self.voxel_in(t, key, old)
+    }
+
+    /// [`TileScratch::voxel`] for a voxel of table `t`'s brick.
+    #[inline]
+    fn voxel_in(&mut self, t: usize, key: VoxelKey, old: Option<Entry>) -> usize {
+        let table = &mut self.tables[t];
+        let slot = key.slot();
+        let i = table.index[slot];
+        if i != u32::MAX {
+            return i as usize;
+        }
+        let own = old.map_or(0.0, |e| if e.edges() > 0.0 { e.message() / e.edges() } else { 0.0 });
+        let i = self.voxels.len();
+        table.index[slot] = i as u32;
+        mask_set(&mut table.set, slot);
+        self.voxels.push(VoxelAcc { key, own, old, seen: 0.0, length: 0.0, sum: 0.0 });
+        i
+    }
+
+    /// The voxels' indices by brick, then slot.
+    fn sorted(&self) -> impl Iterator<Item = usize> + '_ {
+        let mut order: Vec<&SlotTable> = self.tables[..self.used].iter().collect();
+        order.sort_unstable_by_key(|t| t.key);
+        order.into_iter().flat_map(|t| mask_slots(&t.set).map(|slot| t.index[slot] as usize))
+    }
+}
+
+/// Per-ray buffers.
+#[derive(Default)]
+struct RayScratch {
+    /// The free stretch's voxels (slot, length), before the first with any likelihood.
+    free: Vec<(usize, f64)>,
+    slots: Vec<usize>,
+    length: Vec<f64>,
+    mu: Vec<f64>,
+    nu: Vec<f64>,
+    out: Vec<f64>,
+}
+
+impl RayScratch {
+    fn clear(&mut self) {
+        self.free.clear();
+        self.slots.clear();
+        self.length.clear();
+        self.mu.clear();
+        self.nu.clear();
+    }
+
+    fn push(&mut self, slot: usize, length: f64, mu: f64, nu: f64) {
+        self.slots.push(slot);
+        self.length.push(length);
+        self.mu.push(mu);
+        self.nu.push(nu);
+    }
+}
+
+impl MrfEngine {
+    /// The pixel stride of tile `cols` x `rows` of `kf`: the largest power of two up to
+    /// [`MAX_STRIDE`] whose rays, at the tile's nearest depth, lie at most
+    /// [`MrfParams::ray_spacing`] voxel edges apart (1 with `ray_spacing` 0).
+    fn tile_stride(&self, kf: &Keyframe, cols: &std::ops::Range<u32>, rows: &std::ops::Range<u32>) -> u32 {
+        let spacing = self.params.ray_spacing * self.resolution();
+        if spacing <= 0.0 {
+            return 1;
+        }
+        let mut z_min = f32::INFINITY;
+        for v in rows.clone() {
+            for u in cols.clone() {
+                if let Some(z) = kf.frame.depth.get(u, v) {
+                    z_min = z_min.min(z);
+                }
+            }
+        }
+        // Pixel pitch at depth z: z / f (the camera's larger focal length, its finer pitch).
+        let f = kf.frame.camera.fx.abs().max(kf.frame.camera.fy.abs());
+        let mut stride = 1;
+        while stride < MAX_STRIDE && (2 * stride) as f64 * z_min as f64 / f <= spacing {
+            stride *= 2;
+        }
+        stride
+    }
+
+    /// Traces tiles `tiles` (ascending) of keyframe `i` against the current sums, then
+    /// replaces their messages in the sums in tile order.
+    pub(super) fn update_tiles(&mut self, i: usize, tiles: &[usize]) -> RunReport {
+        let mut report = RunReport::default();
+        if tiles.is_empty() {
+            return report;
+        }
+        report.keyframe_updates = 1;
+        report.tiles = tiles.len();
+        // All traced against the same sums, then applied in tile order: the same sums
+        // whatever the number of threads. (Held at once: a keyframe's new tiles with a change
+        // per entry, 14 bytes per entry on top of what its tiles already hold.)
+        let kf = &self.keyframes[i];
+        let rays = FrameRays::new(&kf.frame);
+        let pending: Vec<Traced> = tiles
+            .par_iter()
+            .map_init(TileScratch::default, |scratch, &t| self.trace_tile(kf, &rays, t, scratch))
+            .collect();
+        self.epoch += 1;
+        for mut tr in pending {
+            report.rays += tr.rays;
+            for n in 0..tr.tile.runs.len() {
+                let start = tr.tile.runs[n].1 as usize;
+                let run = tr.tile.run(n).iter().zip(&tr.changes[start..]);
+                self.apply_run(tr.tile.runs[n].0, run.map(|(e, d)| (e.slot(), *d)));
+            }
+            self.apply(&tr.gone);
+            tr.tile.traced_at = self.epoch;
+            self.keyframes[i].tiles[tr.index] = tr.tile;
+        }
+        report
+    }
+
+    /// Traces tile `t` of keyframe `kf`: every ray with its cavities, and the tile's new
+    /// entries (damped against its old ones) and the changes they make to the sums.
+    fn trace_tile<'a>(
+        &'a self,
+        kf: &Keyframe,
+        rays: &FrameRays<'_>,
+        t: usize,
+        scratch: &mut TileScratch<'a>,
+    ) -> Traced {
+        let tile = &kf.tiles[t];
+        let r = self.resolution();
+        let inv_r = 1.0 / r;
+        // The tile's voxels: old ones first (their message per metre is the rays' own share).
+        scratch.clear();
+        for (key, e) in tile.iter() {
+            scratch.voxel(key, Some(*e), &self.sums);
+        }
+        let (cols, rows) = kf.tile_pixels(t);
+        let (mut z_max, mut traced) = (0.0f64, 0usize);
+        let edge = r * BRICK_EDGE as f64;
+        let depth = &kf.frame.depth;
+        let stride = self.tile_stride(kf, &cols, &rows);
+        for v0 in rows.clone().step_by(stride as usize) {
+            for u0 in cols.clone().step_by(stride as usize) {
+                // One ray, of the first valid pixel, stands for the valid pixels of its
+                // stride x stride block.
+                let mut valid = (v0..(v0 + stride).min(rows.end))
+                    .flat_map(|v| (u0..(u0 + stride).min(cols.end)).map(move |u| (u, v)))
+                    .filter(|&(u, v)| depth.get(u, v).is_some());
+                let Some((u, v)) = valid.next() else { continue };
+                let weight = 1.0 + valid.count() as f64;
+                let Some(ray) = rays.ray(u, v) else { continue };
+                let Some(seg) = self.limits.forward_model_segment(&ray, &kf.noise) else { continue };
+                traced += 1;
+                z_max = z_max.max(seg.end * ray.cz);
+                let measured = ray.range * ray.cz;
+                let mut likelihood = kf.noise.along_ray(ray.u, ray.v, measured);
+                scratch.ray.clear();
+                // Voxels before the first one with any likelihood (the free stretch, about
+                // 40% of a ray's voxels at 0.02 m) get the message 0 whatever anyone's belief:
+                // a surface there would make the reading impossible. Nor does their belief
+                // reach the other voxels' messages (`ray_messages`'s prefix stays 0 through
+                // them). So they need no cavity and no place in the ray's factor.
+                let mut window = false;
+                for_each_crossing(ray.origin, ray.dir, seg.start, seg.end, edge, |b| {
+                    let key = BrickKey(b.key.0);
+                    let Some((table, Some(sums))) = scratch.table_of(key, &self.sums) else {
+                        return ControlFlow::Continue(()); // unallocated: skipped, as the reference does
+                    };
+                    for_each_crossing(ray.origin, ray.dir, b.s_in, b.s_out, r, |c| {
+                        // (A voxel of another brick: rounding at a brick face.)
+                        let inside = c.key.brick() == key;
+                        let s = if inside { sums.get(c.key.slot()) } else { self.sums.get(c.key) };
+                        if let Some(&s) = s {
+                            let length = c.length();
+                            let slot = if inside {
+                                scratch.voxel_in(table, c.key, None)
+                            } else {
+                                scratch.voxel(c.key, None, &self.sums)
+                            };
+                            let voxel = &mut scratch.voxels[slot];
+                            voxel.seen = s;
+                            let nu = likelihood.over(c.s_in * ray.cz, c.s_out * ray.cz);
+                            window |= nu > 0.0;
+                            if window {
+                                // The cavity: everything the voxel heard except this ray's own
+                                // message. (Clamped where `ray_messages` clamps anyway: exp
+                                // overflow is slow.)
+                                let cavity =
+                                    sigmoid(((s - voxel.own * (length * inv_r) as f32) as f64).clamp(-40.0, 40.0));
+                                scratch.ray.push(slot, length, cavity, nu);
+                            } else {
+                                scratch.ray.free.push((slot, length));
+                            }
+                        }
+                        ControlFlow::Continue(())
+                    });
+                    ControlFlow::Continue(())
+                });
+                if scratch.ray.slots.is_empty() && scratch.ray.free.is_empty() {
+                    continue;
+                }
+                // The chance the surface lies past the segment (outside the map where the
+                // bounds cut the ray short).
+                let beyond = seg.beyond(&ray, &kf.noise, &mut likelihood, r);
+                let ray_buf = &mut scratch.ray;
+                // The free stretch's message: 0 (clamped), unless the ray has no likelihood
+                // anywhere, beyond included, and says nothing (1/2).
+                let free = if window || beyond > 0.0 { logit(MSG_EPS) } else { 0.0 };
+                for &(slot, l) in &ray_buf.free {
+                    let voxel = &mut scratch.voxels[slot];
+                    voxel.length += weight * l * inv_r;
+                    voxel.sum += weight * l * inv_r * free;
+                }
+                ray_messages(&ray_buf.mu, &ray_buf.nu, beyond, &mut ray_buf.out);
+                for j in 0..ray_buf.slots.len() {
+                    let l = ray_buf.length[j];
+                    let voxel = &mut scratch.voxels[ray_buf.slots[j]];
+                    voxel.length += weight * l * inv_r;
+                    voxel.sum += weight * l * inv_r * logit(ray_buf.out[j].clamp(MSG_EPS, 1.0 - MSG_EPS));
+                }
+            }
+        }
+        // New entries, damped in log-odds: part of the old message stays (a tile's first
+        // message to a voxel goes in whole). A message whose change reverses direction from
+        // one trace to the next is oscillating (voxels competing for one surface can cycle
+        // under any fixed damping): the share of its change that goes in is halved, and
+        // doubled back after `CALM_TRACES` traces in a row without a reversal (after one, a
+        // period-four cycle, two reversals in four traces, was never damped). Damping changes
+        // how a fixed point is approached, not where it is. Voxels its rays no longer reach
+        // lose its message.
+        let keep = self.params.damping;
+        // The new tile by brick and slot, with each entry's change of the sum; voxels no ray
+        // reaches any more lose the tile's message (`gone`, rare, in the same order, applied
+        // after).
+        let mut new = Tile { z_max: z_max as f32, ..Tile::default() };
+        new.entries.reserve_exact(scratch.voxels.len());
+        let mut changes = Vec::with_capacity(scratch.voxels.len());
+        let mut gone = Vec::new();
+        for i in scratch.sorted() {
+            let voxel = &scratch.voxels[i];
+            let old = voxel.old.map_or(0.0, |e| e.message());
+            if voxel.length > 0.0 {
+                let mut entry = Entry::new(voxel.key.slot());
+                entry.set_edges(voxel.length);
+                entry.set_seen(voxel.seen);
+                match voxel.old {
+                    Some(e) => {
+                        let change = voxel.sum - e.message() as f64;
+                        let (level, calm) = if change * e.step_sign() < 0.0 {
+                            ((e.level() + 1).min(MAX_DAMPING_LEVEL), 0)
+                        } else if e.calm() + 1 >= CALM_TRACES {
+                            (e.level().saturating_sub(1), 0)
+                        } else {
+                            (e.level(), e.calm() + 1)
+                        };
+                        let step = (1.0 - keep) * change / (1u32 << level) as f64;
+                        entry.set_message((e.message() as f64 + step) as f32);
+                        entry.set_damping(level, calm, step);
+                        if step != change {
+                            // The voxel's `S` after this update, and where the whole step would take it.
+                            let after = voxel.seen as f64 + step;
+                            let rest = (sigmoid(after + change - step) - sigmoid(after)).abs();
+                            new.held_back = new.held_back.max(rest as f32);
+                        }
+                    }
+                    None => entry.set_message(voxel.sum as f32),
+                }
+                new.push(voxel.key, entry);
+                changes.push(entry.message() - old);
+            } else if old != 0.0 {
+                gone.push((voxel.key, -old));
+            }
+        }
+        new.entries.shrink_to_fit(); // (voxels no longer reached leave room)
+        new.runs.shrink_to_fit();
+        Traced { index: t, tile: new, changes, gone, rays: traced }
+    }
+}

@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Result;
-use mrfmap::inference::{CrmParams, Engine, EngineConfig, EngineKind, LogOddsParams, MrfEngine, MrfParams, new_engine};
+use mrfmap::inference::{CrmParams, EngineConfig, EngineKind, LogOddsParams, MrfEngine, MrfParams, new_engine};
 
 use super::build::{BagArgs, LaserOptions, Reading, marking};
 use mrfmap::frames::Frame;
@@ -27,8 +27,9 @@ pub struct Args {
     #[arg(long, default_value_t = 3)]
     repeat: u32,
     /// MRF only: also time adding the last frame as a keyframe to a map of all the others,
-    /// inferred to convergence first (not timed), and inferring again with the default
-    /// schedule (median of --repeat runs).
+    /// inferred to convergence first (not timed), and inferring again with the change-driven
+    /// schedule (tolerance 0.001, at most 10 sweeps; median of --repeat runs). `build --online
+    /// --timings` times the online schedule.
     #[arg(long)]
     incremental: bool,
     /// MRF only: trace one ray per block of pixels whose rays lie at most this many voxel
@@ -58,7 +59,8 @@ impl Args {
 pub(crate) const BASE_SWEEPS: usize = 300;
 
 /// Time to add the last frame to an inferred MRF of the others and infer again with the
-/// engine's default schedule ([`Engine::finish`]): the median of `repeat` runs. The map it is
+/// change-driven schedule ([`MrfEngine::run_until`], at most
+/// [`mrfmap::inference::DEFAULT_MAX_SWEEPS`] sweeps): the median of `repeat` runs. The map it is
 /// added to is inferred to convergence first (at most [`BASE_SWEEPS`] sweeps), as a robot's
 /// map is after many keyframes; between runs the keyframe is removed and the map re-inferred
 /// the same way (not timed).
@@ -75,7 +77,7 @@ fn incremental_mrf(frames: &[Frame], resolution: f64, repeat: u32, params: MrfPa
     for _ in 0..repeat.max(1) {
         let t = Instant::now();
         let id = engine.add_keyframe(last.clone())?;
-        engine.finish()?;
+        engine.run_until(tolerance, mrfmap::inference::DEFAULT_MAX_SWEEPS);
         times.push(t.elapsed().as_secs_f64());
         engine.remove_keyframe(id)?;
         engine.run_until(tolerance, BASE_SWEEPS);

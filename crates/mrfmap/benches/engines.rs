@@ -117,9 +117,12 @@ fn accuracy_view(bencher: Bencher) {
     bencher.bench(|| black_box(scorer.score_view(&held.camera, &held.pose, &held.depth)));
 }
 
+/// A segment's two end points.
+type Segment = ([f64; 3], [f64; 3]);
+
 /// A log-odds map of 12 demo-room views at 0.05 m, and `n` random queries inside its bounds:
 /// points, and 1 m segments in random directions.
-fn query_setup(n: usize) -> (Map, Vec<[f64; 3]>, Vec<([f64; 3], [f64; 3])>) {
+fn query_setup(n: usize) -> (Map, Vec<[f64; 3]>, Vec<Segment>) {
     let mut e = LogOddsEngine::new(0.05, Default::default(), LogOddsParams::default()).unwrap();
     for f in &frames(12) {
         e.integrate(f).unwrap();

@@ -112,7 +112,7 @@ pub fn run(a: Args) -> Result<()> {
         let log = a.laser.open(&a.dataset)?;
         // Scans depend on the resolution only through their height (the middle of layer 0).
         let scans = |r: f64| a.laser.scans(&log, r, None);
-        return table(&a, kind, scans(a.resolutions[0])?.len(), "scans", |r| scans(r), |_, _| Ok(String::new()));
+        return table(&a, kind, scans(a.resolutions[0])?.len(), "scans", scans, |_, _| Ok(String::new()));
     }
     let dataset = Dataset::open(&a.dataset)?;
     let frames = (0..dataset.len()).map(|i| dataset.frame(i)).collect::<mrfmap::Result<Vec<_>>>()?;

@@ -82,10 +82,8 @@ fn extra_flags(a: &Args) -> String {
         let m: Vec<&str> = a.metric.metric.iter().map(|r| r.name()).collect();
         let _ = write!(f, " --metric {}", m.join(","));
     }
-    if let Some(t) = a.metric.target {
-        if let Some(v) = clap::ValueEnum::to_possible_value(&t) {
-            let _ = write!(f, " --target {}", v.get_name());
-        }
+    if let Some(v) = a.metric.target.and_then(|t| clap::ValueEnum::to_possible_value(&t)) {
+        let _ = write!(f, " --target {}", v.get_name());
     }
     if a.protocol != [Protocol::Truth] {
         let p: Vec<&str> = a.protocol.iter().map(|p| p.name()).collect();

@@ -43,6 +43,9 @@ pub struct Args {
     json: bool,
 }
 
+/// Per peak rule, the score of each held-out view.
+pub type ScoresByRule = Vec<(PeakRule, Vec<(usize, ViewScore)>)>;
+
 /// Leave-one-out scores of `views` for one engine, resolution and protocol, per metric of
 /// `metric` (the same maps scored each way); `on_view` sees each held-out build with the
 /// first metric's scorer (for pictures).
@@ -56,7 +59,7 @@ pub fn leave_one_out(
     options: &MapOptions,
     metric: &MetricOptions,
     mut on_view: impl FnMut(usize, &Scorer, &ViewScore) -> Result<()>,
-) -> Result<Vec<(PeakRule, Vec<(usize, ViewScore)>)>> {
+) -> Result<ScoresByRule> {
     let config = protocol.options(options).config(kind, resolution)?;
     let frames = protocol.frames(frames);
     let target = metric.target(protocol);

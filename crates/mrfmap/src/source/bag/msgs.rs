@@ -122,10 +122,14 @@ pub fn depth_image(data: &[u8], encoding: Encoding) -> CdrResult<(Header, DepthI
     Ok((h, image))
 }
 
+/// A decoded `sensor_msgs/LaserScan`: header, `(angle, range or None for a miss)` per beam,
+/// and `range_max`.
+pub type LaserScan = (Header, Vec<(f64, Option<f64>)>, f64);
+
 /// `sensor_msgs/LaserScan` as beams in the scan's frame: `(angle, range or None for no
 /// return)`; readings below `range_min` (or NaN) measured nothing and are dropped, readings at
 /// or beyond `range_max` (or infinite) are misses. Also `range_max`.
-pub fn laser_scan(data: &[u8], encoding: Encoding) -> CdrResult<(Header, Vec<(f64, Option<f64>)>, f64)> {
+pub fn laser_scan(data: &[u8], encoding: Encoding) -> CdrResult<LaserScan> {
     let mut c = Cdr::with(data, encoding)?;
     let h = header(&mut c)?;
     let angle_min = c.f32("angle_min")? as f64;
@@ -370,7 +374,7 @@ pub(crate) mod tests {
             Writer(vec![0, 1, 0, 0])
         }
         fn align(&mut self, n: usize) {
-            while (self.0.len() - 4) % n != 0 {
+            while !(self.0.len() - 4).is_multiple_of(n) {
                 self.0.push(0);
             }
         }

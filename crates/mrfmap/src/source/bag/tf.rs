@@ -175,8 +175,8 @@ mod tests {
         let p = tf.lookup("map", "camera", 1.5, 1.0).unwrap();
         let h = std::f64::consts::FRAC_PI_4;
         let expect = [1.0 + 1.0 + 0.5 * h.cos(), 0.5 * h.sin(), 0.0];
-        for a in 0..3 {
-            assert!((p.translation.vector[a] - expect[a]).abs() < 1e-12, "{p:?}");
+        for (got, want) in p.translation.vector.iter().zip(expect) {
+            assert!((got - want).abs() < 1e-12, "{p:?}");
         }
         assert!((p.rotation.angle() - h).abs() < 1e-12);
         // The inverse direction, and the identity.

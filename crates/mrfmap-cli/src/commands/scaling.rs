@@ -13,7 +13,8 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use mrfmap::frames::{Camera, DepthImage, Frame};
 use mrfmap::inference::{
-    CrmParams, DEFAULT_TOLERANCE, Engine, EngineConfig, EngineKind, MrfEngine, MrfParams, new_engine,
+    CrmParams, DEFAULT_MAX_SWEEPS, DEFAULT_TOLERANCE, Engine, EngineConfig, EngineKind, MrfEngine, MrfParams,
+    new_engine,
 };
 use mrfmap::outputs::pictures::write_text;
 use mrfmap::outputs::{Canvas, PlotArea, Rgb};
@@ -266,12 +267,12 @@ fn keyframe_curves(a: &Args, report: &mut String) -> Result<()> {
     let room: Vec<Frame> = (0..=n_max).map(|k| render(k, 0.0)).collect();
     let _ = writeln!(
         report,
-        "\n## MRF vs number of keyframes (demo room, 0.05 m)\n\nAll with the default schedule \
-         (change-driven). Full build: add N keyframes and infer (timed). The map is then \
+        "\n## MRF vs number of keyframes (demo room, 0.05 m)\n\nFull build: add N keyframes and \
+         infer with the default schedule (3 sweeps; timed). The map is then \
          inferred to convergence (at most {BASE_SWEEPS} sweeps, not timed; \"converged\" says \
          whether it got there), as `mrfmap bench --incremental` does. Add one, overlapping: add \
-         a view of the same room to the N inferred keyframes and infer again (every keyframe \
-         overlaps it). Add one, apart: the N keyframes are copies 100 m apart from each other \
+         a view of the same room to the N inferred keyframes and infer again with the \
+         change-driven schedule (tolerance 0.001, at most 10 sweeps; every keyframe overlaps it). Add one, apart: the N keyframes are copies 100 m apart from each other \
          (none overlaps the new one except the first).\n\n\
          | N | full build s | converged | add one (overlapping) s | add one (apart) s | tiles traced (overlapping) | tiles traced (apart) |\n|---|---|---|---|---|---|---|"
     );
@@ -293,7 +294,7 @@ fn keyframe_curves(a: &Args, report: &mut String) -> Result<()> {
         let add = |e: &mut MrfEngine| -> Result<(f64, usize)> {
             let t = Instant::now();
             e.add_keyframe(room[n].clone())?;
-            let r = e.run_until(tolerance, params.iterations);
+            let r = e.run_until(tolerance, DEFAULT_MAX_SWEEPS);
             Ok((t.elapsed().as_secs_f64(), r.tiles))
         };
         let (mut near, full_secs, converged) = build(&room[..n])?;

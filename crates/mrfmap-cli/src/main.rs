@@ -118,8 +118,12 @@ fn main() {
     progress::set_quiet(cli.quiet);
 
     let result = (|| {
-        if let Some(bytes) = cli.max_memory {
-            mrfmap::limits::set_max_memory(bytes);
+        match cli.max_memory {
+            Some(bytes) => mrfmap::limits::set_max_memory(bytes),
+            // Checked here, so that a typo is an error rather than the default limit.
+            None => {
+                mrfmap::limits::env_max_memory()?;
+            }
         }
         if let Some(n) = cli.threads {
             rayon::ThreadPoolBuilder::new().num_threads(n as usize).build_global()?;

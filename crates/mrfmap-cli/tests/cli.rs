@@ -754,9 +754,11 @@ fn laser_log_build_grid2d_view_and_experiment() {
         let o = run(&["view", s(&map), "-o", s(&png)]);
         assert!(o.status.success() && png.is_file(), "{}", stderr(&o));
     }
-    // The MRF takes depth images only.
-    let o = run(&["build", s(&log), "--engine", "mrf", "--resolution", "0.05", "-o", s(&map)]);
+    // The MRF takes depth images only: said before any memory estimate (which cannot size an
+    // MRF from scans and used to refuse it as needing hundreds of GiB).
+    let o = run(&["--max-memory", "1M", "build", s(&log), "--engine", "mrf", "--resolution", "0.05", "-o", s(&map)]);
     assert!(!o.status.success() && stderr(&o).contains("depth images only"), "{}", stderr(&o));
+    assert!(!stderr(&o).contains("would need"), "{}", stderr(&o));
 
     // The experiment runs end to end and writes its report and pictures.
     let out = dir.join("exp");
@@ -813,6 +815,15 @@ fn runaway_work_is_refused_before_it_starts_and_argument_errors_look_like_errors
     assert!(!o.status.success() && stderr(&o).contains("limit of 1.0 MiB"), "{}", stderr(&o));
     let o = run(&["build", s(&data), "-o", s(&out), "--resolution", "0.05", "--engine", "mrf", "--max-memory", "lots"]);
     assert!(!o.status.success() && stderr(&o).contains("memory size \"lots\""), "{}", stderr(&o));
+    // The variable is read as strictly as the flag (it was ignored when it did not parse).
+    let o = bin()
+        .args(["build", s(&data), "-o", s(&out), "--resolution", "0.05"])
+        .env("MRFMAP_MAX_MEMORY", "abc")
+        .output()
+        .unwrap();
+    assert!(!o.status.success() && stderr(&o).contains("MRFMAP_MAX_MEMORY=\"abc\""), "{}", stderr(&o));
+    let o = bin().args(["--max-memory", "1M", "info", s(&data)]).env("MRFMAP_MAX_MEMORY", "abc").output().unwrap();
+    assert!(!stderr(&o).contains("MRFMAP_MAX_MEMORY"), "the flag wins: {}", stderr(&o));
     // A voxel larger than the scene: built, with a warning (and no colour codes off a terminal).
     let o = run(&["build", s(&data), "-o", s(&out), "--resolution", "1e9"]);
     let err = stderr(&o);
@@ -1114,4 +1125,44 @@ fn mrf_online_build_writes_timings_and_honours_the_budget() {
         &["--engine", "mrf", "--online", "--timings", s(&dir.join("no/such/t.csv"))],
         &["output folder"],
     );
+}
+
+/// An occupancy threshold outside [0, 1) would select no voxel and write an empty picture,
+/// grid or scene: refused, naming the argument; so is a box that is not finite.
+#[test]
+fn thresholds_and_boxes_outside_their_range_are_refused() {
+    let dir = workdir("thresholds");
+    let data = dataset(&dir);
+    let map = dir.join("m.mrfmap");
+    assert!(run(&["build", s(&data), "-o", s(&map), "--resolution", "0.1", "-q"]).status.success());
+    let png = dir.join("v.png");
+    for args in [
+        vec!["view", s(&map), "-o", s(&png), "--threshold", "2"],
+        vec!["export", s(&map), "--mcap", s(&dir.join("s.mcap")), "--threshold", "1"],
+        vec!["project", s(&map), "--z-min", "0", "--z-max", "1", "-o", s(&dir.join("g.yaml")), "--threshold=-0.1"],
+    ] {
+        let o = run(&args);
+        assert!(
+            !o.status.success() && stderr(&o).contains("--threshold") && stderr(&o).contains("[0, 1)"),
+            "{args:?}: {}",
+            stderr(&o)
+        );
+    }
+    assert!(!png.exists());
+    build_fails(&data, &["--bounds=-inf,0,0,1,1,1"], &["bounds", "finite"]);
+    // A swapped output flag is found by its extension, before anything is written; a missing
+    // folder is named.
+    let ply = dir.join("x.ply");
+    let o = run(&["export", s(&map), "--ply", s(&ply), "--bt", s(&dir.join("y.ply"))]);
+    assert!(
+        !o.status.success() && stderr(&o).contains("--bt") && stderr(&o).contains("expected a .bt file"),
+        "{}",
+        stderr(&o)
+    );
+    assert!(!ply.exists());
+    let o = run(&["export", s(&map), "--ply", s(&dir.join("no/such/x.ply"))]);
+    assert!(!o.status.success() && stderr(&o).contains("output folder"), "{}", stderr(&o));
+    assert!(run(&["export", s(&map), "--ot", s(&dir.join("x.OT"))]).status.success());
+    let o = run(&["view", s(&map), "-o", s(&dir.join("no/such/v.png"))]);
+    assert!(!o.status.success() && stderr(&o).contains("output folder"), "{}", stderr(&o));
 }

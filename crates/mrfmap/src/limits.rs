@@ -17,14 +17,31 @@ pub fn set_max_memory(bytes: u64) {
     MAX_MEMORY.store(bytes, Ordering::Relaxed);
 }
 
-/// The memory limit in bytes.
+/// The memory limit in bytes. An unreadable `MRFMAP_MAX_MEMORY` is ignored with a warning
+/// (the command line refuses it: [`env_max_memory`]).
 pub fn max_memory() -> u64 {
     match MAX_MEMORY.load(Ordering::Relaxed) {
-        0 => std::env::var("MRFMAP_MAX_MEMORY")
-            .ok()
-            .and_then(|v| parse_bytes(&v).ok())
+        0 => env_max_memory()
+            .unwrap_or_else(|e| {
+                tracing::warn!("{e}; using the default limit");
+                None
+            })
             .unwrap_or_else(|| physical_memory().map_or(8 << 30, |m| m / 4 * 3)),
         set => set,
+    }
+}
+
+/// The limit `MRFMAP_MAX_MEMORY` sets, if it is set: an error naming the variable and its
+/// value when that is not a size (`8G`, `512M`, ...).
+pub fn env_max_memory() -> Result<Option<u64>> {
+    match std::env::var("MRFMAP_MAX_MEMORY") {
+        Ok(v) => parse_bytes(&v)
+            .map(Some)
+            .map_err(|e| Error::Invalid(format!("MRFMAP_MAX_MEMORY={v:?} is not a memory size: {e}"))),
+        Err(std::env::VarError::NotPresent) => Ok(None),
+        Err(std::env::VarError::NotUnicode(v)) => {
+            Err(Error::Invalid(format!("MRFMAP_MAX_MEMORY={v:?} is not a memory size")))
+        }
     }
 }
 

@@ -607,13 +607,19 @@ pub fn build_online(
 pub fn run(a: Args) -> Result<()> {
     let kind: EngineKind = a.engine.parse()?;
     check_output_folder(&a.output)?;
+    let scans = !BagArgs::is_bag(&a.dataset) && a.dataset.is_file() || a.bag.scan_topic.is_some();
+    if scans && kind == EngineKind::Mrf {
+        // Said before the memory estimate, which cannot size an MRF from range scans.
+        bail!(
+            "{}: the mrf engine takes depth images only (a dataset or a bag's --depth-topic); range scans work \
+             with logodds and crm",
+            a.dataset.display()
+        );
+    }
     let online = a.online.online.then_some(&a.online);
     if let Some(o) = online {
         if kind != EngineKind::Mrf {
             bail!("--online is the MRF's schedule (--engine mrf); log-odds and CRM integrate each frame as it comes");
-        }
-        if !BagArgs::is_bag(&a.dataset) && a.dataset.is_file() || a.bag.scan_topic.is_some() {
-            bail!("{}: --online needs depth images (a dataset or a bag's --depth-topic)", a.dataset.display());
         }
         if let Some(t) = &o.timings {
             check_output_folder(t)?;

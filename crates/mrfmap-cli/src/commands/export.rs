@@ -2,7 +2,7 @@
 
 use std::path::PathBuf;
 
-use anyhow::{Context, Result};
+use anyhow::{Context, Result, bail};
 use mrfmap::map::Map;
 use mrfmap::outputs::{
     OctomapFormat, PlyOptions, SCENE_TOPIC, SceneOptions, write_map_server, write_octomap, write_ply, write_scene_mcap,
@@ -37,7 +37,7 @@ pub struct Args {
     #[arg(long)]
     sigma: bool,
     /// MCAP and grid2d: voxels above this occupancy are occupied.
-    #[arg(long, default_value_t = 0.5)]
+    #[arg(long, default_value_t = 0.5, value_parser = super::threshold)]
     threshold: f32,
     /// MCAP: colour cubes by height, sigma or occupancy.
     #[arg(long, default_value = "occupancy", value_parser = ["height", "sigma", "variance", "occupancy"])]
@@ -48,6 +48,23 @@ pub struct Args {
 }
 
 pub fn run(a: Args) -> Result<()> {
+    // A wrong extension is most often a swapped flag: found before any work.
+    let outputs = [
+        ("--ply", &a.ply, "ply"),
+        ("--bt", &a.bt, "bt"),
+        ("--ot", &a.ot, "ot"),
+        ("--mcap", &a.mcap, "mcap"),
+        ("--grid2d", &a.grid2d, "yaml"),
+    ];
+    for (flag, path, ext) in outputs {
+        if let Some(path) = path {
+            let got = path.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
+            if got != ext && !(ext == "yaml" && got == "yml") {
+                bail!("{flag} {}: expected a .{ext} file", path.display());
+            }
+            super::build::check_output_folder(path)?;
+        }
+    }
     let map = Map::load(&a.map)?;
     if let Some(ply) = &a.ply {
         let options = if a.occupied_only { PlyOptions::occupied_only() } else { PlyOptions { min_occupancy: None } };

@@ -73,9 +73,9 @@ pub fn leave_one_out(
             let scorer = scorer(&report.map, metric, *rule, noise.as_deref())?;
             let s = score(&scorer, dataset, view, target)?;
             tracing::info!(
-                "{kind} {resolution} m, {} protocol, view {view}: accuracy {:?} ({} metric)",
+                "{kind} {resolution} m, {} protocol, view {view}: accuracy {} ({} metric)",
                 protocol.name(),
-                s.accuracy(),
+                s.accuracy().map_or("- (no valid pixel)".to_string(), |a| format!("{a:.4}")),
                 rule.name()
             );
             if n == 0 {

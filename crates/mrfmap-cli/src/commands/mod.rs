@@ -30,6 +30,16 @@ pub fn positive(s: &str) -> Result<f64, String> {
     }
 }
 
+/// clap parser for an occupancy threshold: a probability in `[0, 1)` (nothing is above 1, so a
+/// larger threshold would select nothing and give an empty output).
+pub fn threshold(s: &str) -> Result<f32, String> {
+    match s.parse::<f32>() {
+        Ok(v) if (0.0..1.0).contains(&v) => Ok(v),
+        Ok(v) => Err(format!("must be an occupancy in [0, 1), got {v}")),
+        Err(e) => Err(e.to_string()),
+    }
+}
+
 /// clap parser for a finite number that is 0 or more.
 pub fn non_negative(s: &str) -> Result<f64, String> {
     match s.parse::<f64>() {

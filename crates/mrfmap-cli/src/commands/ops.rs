@@ -74,7 +74,7 @@ pub struct DiffArgs {
     /// The map after (same resolution).
     after: PathBuf,
     /// Occupancy above which a voxel is occupied.
-    #[arg(long, default_value_t = 0.5)]
+    #[arg(long, default_value_t = 0.5, value_parser = super::threshold)]
     threshold: f32,
     /// Write the changed voxels: `.ply` (centres with `before` and `after` occupancy, -1 for
     /// unknown) or a map file (the changed voxels as the second map has them; voxels that
@@ -124,7 +124,7 @@ pub struct ProjectArgs {
     #[arg(long, allow_hyphen_values = true)]
     z_max: f64,
     /// Occupancy above which a cell is occupied.
-    #[arg(long, default_value_t = 0.5)]
+    #[arg(long, default_value_t = 0.5, value_parser = super::threshold)]
     threshold: f32,
     /// Also write `<stem>-sigma.pgm`, the standard deviation per cell.
     #[arg(long)]

@@ -29,7 +29,7 @@ pub struct Args {
     #[arg(long, default_value_t = 60.0)]
     fov: f64,
     /// Draw voxels with occupancy above this.
-    #[arg(long, default_value_t = 0.5)]
+    #[arg(long, default_value_t = 0.5, value_parser = super::threshold)]
     threshold: f32,
     /// Instead of the 3D picture, the occupancy slice at AXIS=VALUE (e.g. z=0.5).
     #[arg(long, allow_hyphen_values = true)]
@@ -49,6 +49,7 @@ fn triple(name: &str, text: &str) -> Result<[f64; 3]> {
 }
 
 pub fn run(a: Args) -> Result<()> {
+    super::build::check_output_folder(&a.output)?;
     let map = Map::load(&a.map)?;
     if map.voxels.is_empty() {
         bail!("{}: the map is empty: nothing to show", a.map.display());

@@ -270,7 +270,12 @@ pub struct Aabb {
 impl Aabb {
     /// A box; fails unless `min < max` on every axis and all values are finite.
     pub fn new(min: [f64; 3], max: [f64; 3]) -> crate::Result<Self> {
-        if min.iter().chain(max.iter()).any(|v| !v.is_finite()) || (0..3).any(|a| min[a] >= max[a]) {
+        if min.iter().chain(max.iter()).any(|v| !v.is_finite()) {
+            return Err(crate::Error::Invalid(format!(
+                "bounds need finite numbers (a box is a finite region), got {min:?} and {max:?}"
+            )));
+        }
+        if (0..3).any(|a| min[a] >= max[a]) {
             return Err(crate::Error::Invalid(format!("bounds need min < max on every axis, got {min:?} and {max:?}")));
         }
         Ok(Aabb { min, max })
@@ -282,6 +287,8 @@ impl Aabb {
     /// let b = mrfmap::rays::Aabb::parse("-2,-2,0,2,2,3").unwrap();
     /// assert_eq!(b.max, [2.0, 2.0, 3.0]);
     /// assert!(mrfmap::rays::Aabb::parse("1,2,3").is_err());
+    /// let e = mrfmap::rays::Aabb::parse("-inf,0,0,1,1,1").unwrap_err();
+    /// assert!(e.to_string().contains("finite"));
     /// ```
     pub fn parse(text: &str) -> crate::Result<Self> {
         let v: Vec<f64> = text

@@ -417,6 +417,21 @@ pub(super) mod tests {
         Scene::from_toml(&toml, "t.toml".as_ref()).unwrap()
     }
 
+    /// Every tile's largest marginal move since it traced, `(keyframe, tile, move)`, checked
+    /// against every brick (each counted as changed), not only those the change log names.
+    pub(super) fn moves_against_every_brick(e: &mut MrfEngine) -> Vec<(usize, usize, f64)> {
+        for v in e.stamps.values_mut() {
+            *v = u64::MAX;
+        }
+        let e = &*e;
+        let tiles = e
+            .keyframes
+            .iter()
+            .enumerate()
+            .flat_map(|(k, kf)| kf.tiles.iter().enumerate().map(move |(t, tile)| (k, t, tile)));
+        tiles.map(|(k, t, tile)| (k, t, schedule::largest_move(&e.sums, &e.stamps, tile, None, 0.0, 1.0))).collect()
+    }
+
     /// Noisy frames of every view of [`test_scene`]`(views)`.
     pub(super) fn test_frames(views: usize) -> Vec<Frame> {
         let scene = test_scene(views);

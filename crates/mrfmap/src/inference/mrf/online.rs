@@ -164,10 +164,11 @@ impl MrfEngine {
         // for a check and a tile.
         let own_ms = start.elapsed().as_secs_f64() * 1e3 - arrived_ms;
         let (mut check_ms, mut checks_ms, mut batches) = (0.0, 0.0, 0);
+        // The budget's milliseconds left once a check of `check_ms` more is paid for.
+        let left_ms = |check_ms: f64| budget.ms.map(|ms| ms - start.elapsed().as_secs_f64() * 1e3 - check_ms);
         loop {
-            let left_ms = budget.ms.map(|ms| ms - start.elapsed().as_secs_f64() * 1e3 - check_ms);
             let tile_ms = self.tile_ms.unwrap_or(FIRST_MS_PER_TILE);
-            if left_ms.is_some_and(|left| left < tile_ms) || budget.tiles.is_some_and(|n| report.tiles >= n) {
+            if left_ms(check_ms).is_some_and(|left| left < tile_ms) || budget.tiles.is_some_and(|n| report.tiles >= n) {
                 break;
             }
             let t = Instant::now();
@@ -182,8 +183,7 @@ impl MrfEngine {
             if let Some(n) = budget.tiles {
                 batch = batch.min(n - report.tiles);
             }
-            if let Some(ms) = budget.ms {
-                let left = ms - start.elapsed().as_secs_f64() * 1e3 - check_ms;
+            if let Some(left) = left_ms(check_ms) {
                 batch = batch.min((left / tile_ms).max(0.0) as usize);
             }
             if batch == 0 {
@@ -280,7 +280,7 @@ impl MrfEngine {
 
 #[cfg(test)]
 mod tests {
-    use super::super::tests::test_frames;
+    use super::super::tests::{moves_against_every_brick, test_frames};
     use super::*;
     use crate::inference::MrfParams;
 
@@ -298,17 +298,11 @@ mod tests {
             // What the next call's check would find, then every brick counted as changed.
             let backlog = e.check_backlog(tol).len();
             assert_eq!(backlog, e.backlog(), "{what}");
-            for v in e.stamps.values_mut() {
-                *v = u64::MAX;
-            }
             let mut waiting = 0;
-            for (k, kf) in e.keyframes.iter().enumerate() {
-                for (t, tile) in kf.tiles.iter().enumerate() {
-                    if tile.backlog_priority() as f64 > tol {
-                        waiting += 1;
-                        continue;
-                    }
-                    let moved = largest_move(&e.sums, &e.stamps, tile, None, 0.0, 1.0);
+            for (k, t, moved) in moves_against_every_brick(e) {
+                if e.keyframes[k].tiles[t].backlog_priority() as f64 > tol {
+                    waiting += 1;
+                } else {
                     assert!(moved <= 1.5 * tol, "{what}: keyframe {k} tile {t} moved {moved} outside the backlog");
                 }
             }

@@ -281,7 +281,7 @@ mod tests {
     use super::*;
     use crate::frames::Pose;
     use crate::inference::MrfParams;
-    use crate::inference::mrf::tests::test_frames;
+    use crate::inference::mrf::tests::{moves_against_every_brick, test_frames};
 
     /// After change-driven inference has converged, checking every tile of every keyframe
     /// against every brick (not only those the change log projects onto it) finds no voxel
@@ -295,14 +295,8 @@ mod tests {
         let check = |e: &mut MrfEngine, what: &str| {
             let r = e.run_until(tol, 500);
             assert!(r.converged, "{what}: {r:?}");
-            for v in e.stamps.values_mut() {
-                *v = u64::MAX; // every brick counts as changed
-            }
-            for (k, kf) in e.keyframes.iter().enumerate() {
-                for (t, tile) in kf.tiles.iter().enumerate() {
-                    let moved = largest_move(&e.sums, &e.stamps, tile, None, 0.0, 1.0);
-                    assert!(moved <= 1.5 * tol, "{what}: keyframe {k} tile {t} left dirty ({moved})");
-                }
+            for (k, t, moved) in moves_against_every_brick(e) {
+                assert!(moved <= 1.5 * tol, "{what}: keyframe {k} tile {t} left dirty ({moved})");
             }
         };
         for f in &frames[..4] {

@@ -16,7 +16,7 @@ use std::sync::Arc;
 pub use calibration::{BinStats, Calibration, CalibrationOptions, Calibrator, PatchFit, RESERVOIR, weighted_polyfit};
 pub use camera::{Camera, MAX_PIXELS, MAX_SIDE};
 pub use depth::DepthImage;
-pub use noise::{NoiseModel, PatchModel, Poly, RayLikelihood, STD_FLOOR, TAIL_CUTOFF, upper_tail};
+pub use noise::{Intervals, NoiseModel, PatchModel, Poly, RayLikelihood, STD_FLOOR, TAIL_CUTOFF, upper_tail};
 pub use pose::{Pose, look_at, pose_from_tum, pose_to_tum};
 pub use scan::{Beam, RangeScan};
 

@@ -18,6 +18,7 @@ mod crm;
 mod estimate;
 mod logodds;
 mod mrf;
+mod vecmath;
 
 use std::fmt;
 use std::str::FromStr;
@@ -27,7 +28,8 @@ pub use estimate::{Extent, estimate_memory};
 pub use logodds::{LogOddsEngine, LogOddsParams, Marking, SensorModel};
 pub use mrf::{
     Allocation, Budget, DEFAULT_MAX_SWEEPS, DEFAULT_MIN_EVIDENCE, DEFAULT_SWEEPS, DEFAULT_TOLERANCE, KeyframeId,
-    KeyframeSelection, MAX_BATCH, MU_EPS, MrfEngine, MrfParams, RunReport, StepReport, TILE, ray_messages,
+    KeyframeSelection, MAX_BATCH, MAX_LOG_ODDS, MU_EPS, MrfEngine, MrfParams, RunReport, StepReport, TILE,
+    ray_log_messages, ray_messages,
 };
 
 use crate::error::{Error, Result};

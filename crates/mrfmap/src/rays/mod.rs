@@ -15,7 +15,7 @@ mod frustum;
 mod traversal;
 
 pub use frustum::{CrossedVoxels, Projector};
-pub use traversal::{Crossing, crossings, for_each_crossing};
+pub use traversal::{Crossing, Walk, crossings, for_each_crossing};
 
 use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;

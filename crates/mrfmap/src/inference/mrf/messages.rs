@@ -18,6 +18,14 @@
 //! stays within `[0, max nu]` (the division-free suffix). Incoming messages are clamped to
 //! `[MU_EPS, 1 - MU_EPS]` so `1 - mu` never vanishes, and `a` is capped at `A_CAP`: beyond it
 //! every later message is 1/2 to double precision anyway (the ray is occluded).
+//!
+//! **The engine's form.** The trace holds beliefs as log-odds, so [`ray_log_messages`]
+//! takes the incoming messages as odds `e = mu / (1 - mu)` and returns log-odds: the prefix
+//! becomes `a_{i+1} = a_i (1 + e_i) + e_i nu_i`, with no division on either recursion's
+//! chain, and the logarithms are one vectorised pass. [`ray_messages`] is the probability
+//! form on top of it (the brute-force tests below check both).
+
+use crate::inference::vecmath::ln_clamped_in_place;
 
 /// Incoming messages are kept in `[MU_EPS, 1 - MU_EPS]`.
 pub const MU_EPS: f64 = 1e-9;
@@ -29,7 +37,7 @@ const A_CAP: f64 = 1e250;
 ///
 /// `mu` and `nu` have one entry per voxel in ray order; `out` receives the messages
 /// (cleared first). A ray whose factor carries no information (all likelihoods zero)
-/// sends 1/2.
+/// sends 1/2. The probability form of [`ray_log_messages`], which the engine uses.
 ///
 /// ```
 /// use mrfmap::inference::ray_messages;
@@ -39,28 +47,53 @@ const A_CAP: f64 = 1e250;
 /// assert!(out[0] < 0.5 && out[1] > 0.9);
 /// ```
 pub fn ray_messages(mu: &[f64], nu: &[f64], nu_beyond: f64, out: &mut Vec<f64>) {
-    let n = mu.len();
+    let odds: Vec<f64> = mu
+        .iter()
+        .map(|m| {
+            let m = m.clamp(MU_EPS, 1.0 - MU_EPS);
+            m / (1.0 - m)
+        })
+        .collect();
+    ray_log_messages(&odds, nu, nu_beyond, 700.0, out);
+    for m in out.iter_mut() {
+        *m = 1.0 / (1.0 + (-*m).exp());
+    }
+}
+
+/// Largest incoming odds `mu / (1 - mu)` that [`ray_log_messages`] expects: `mu` within
+/// `[MU_EPS, 1 - MU_EPS]`, so its log-odds within `+-MAX_LOG_ODDS`.
+pub const MAX_LOG_ODDS: f64 = 20.723_265_836_146_06; // ln((1 - MU_EPS) / MU_EPS)
+
+/// Outgoing messages of one ray factor as log-odds `ln(m1_i / m0_i)` clamped to
+/// `[-bound, bound]` (`bound` below 700), from the incoming messages as odds
+/// `mu_i / (1 - mu_i)` (each within `exp(+-MAX_LOG_ODDS)`).
+///
+/// The same recursions as [`ray_messages`] without a division on either chain: with odds
+/// `e`, `mu = e / (1 + e)` and `1 / (1 - mu) = 1 + e`, so the prefix is
+/// `a_{i+1} = a_i (1 + e_i) + e_i nu_i` and the suffix `T_i = mu nu + (1 - mu) T` takes
+/// `1 / (1 + e)` computed off the chain. A message is `+-bound` where one side is exactly
+/// zero, and 0 where both are (the ray says nothing). The logarithms are taken in one
+/// vectorised pass at the end.
+pub fn ray_log_messages(odds: &[f64], nu: &[f64], nu_beyond: f64, bound: f64, out: &mut Vec<f64>) {
+    let n = odds.len();
     debug_assert_eq!(n, nu.len());
     out.clear();
-    out.resize(n, 0.5);
+    out.resize(n, 0.0);
     // Backward pass: T_i stored in `out` temporarily.
     let mut t = nu_beyond;
     for i in (0..n).rev() {
         out[i] = t;
-        let m = mu[i].clamp(MU_EPS, 1.0 - MU_EPS);
-        t = m * nu[i] + (1.0 - m) * t;
+        let q = 1.0 / (1.0 + odds[i]); // 1 - mu
+        t = q * t + odds[i] * q * nu[i];
     }
     // Forward pass with the rescaled prefix a_i = A_i / V_i.
     let mut a = 0.0f64;
     for i in 0..n {
-        let t_i = out[i];
-        let m1 = a + nu[i];
-        let m0 = a + t_i;
-        let z = m1 + m0;
-        out[i] = if z > 0.0 && z.is_finite() { m1 / z } else { 0.5 };
-        let m = mu[i].clamp(MU_EPS, 1.0 - MU_EPS);
-        a = ((a + m * nu[i]) / (1.0 - m)).min(A_CAP);
+        let (m1, m0) = (a + nu[i], a + out[i]);
+        out[i] = m1 / m0; // (0 / 0 = NaN where the ray says nothing: log-odds 0)
+        a = (a * (1.0 + odds[i]) + odds[i] * nu[i]).min(A_CAP);
     }
+    ln_clamped_in_place(out, bound);
 }
 
 #[cfg(test)]

@@ -98,7 +98,7 @@ use std::sync::Arc;
 
 use rustc_hash::{FxHashMap, FxHashSet};
 
-pub use messages::{MU_EPS, ray_messages};
+pub use messages::{MAX_LOG_ODDS, MU_EPS, ray_log_messages, ray_messages};
 pub use online::{Budget, MAX_BATCH, StepReport};
 pub use params::{
     Allocation, DEFAULT_MAX_SWEEPS, DEFAULT_MIN_EVIDENCE, DEFAULT_SWEEPS, DEFAULT_TOLERANCE, KeyframeSelection,

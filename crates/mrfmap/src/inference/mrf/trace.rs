@@ -1,5 +1,5 @@
 //! Tracing tiles: every ray of a tile with its cavities, the ray factor's messages
-//! ([`super::ray_messages`]), and the tile's new entries, damped against its old ones; then
+//! ([`super::ray_log_messages`]), and the tile's new entries, damped against its old ones; then
 //! their changes applied to the sums in tile order.
 
 use std::ops::ControlFlow;
@@ -7,13 +7,16 @@ use std::ops::ControlFlow;
 use rayon::prelude::*;
 use rustc_hash::FxHashMap;
 
+use super::MrfEngine;
 use super::schedule::RunReport;
 use super::tiles::{CALM_TRACES, Entry, Keyframe, MAX_DAMPING_LEVEL, Tile};
-use super::{MrfEngine, ray_messages};
+use super::{MAX_LOG_ODDS, ray_log_messages};
+use crate::frames::Intervals;
 use crate::inference::Engine;
+use crate::inference::vecmath::exp_in_place;
 use crate::inference::{logit, sigmoid};
 use crate::map::{BRICK_EDGE, BRICK_VOXELS, Brick, BrickKey, Grid, SlotMask, VoxelKey, mask_set, mask_slots};
-use crate::rays::{FrameRays, for_each_crossing};
+use crate::rays::{FrameRays, Walk};
 
 /// One tile's trace, before it is applied.
 struct Traced {
@@ -203,32 +206,27 @@ impl<'a> TileScratch<'a> {
     }
 }
 
-/// Per-ray buffers.
+/// Per-ray buffers: one entry per voxel the ray crosses, in order.
 #[derive(Default)]
 struct RayScratch {
-    /// The free stretch's voxels (slot, length), before the first with any likelihood.
-    free: Vec<(usize, f64)>,
     slots: Vec<usize>,
-    length: Vec<f64>,
-    mu: Vec<f64>,
-    nu: Vec<f64>,
+    /// Where the ray enters and leaves the voxel (camera z-depth, m), and its length inside
+    /// (voxel edges).
+    z0: Vec<f64>,
+    z1: Vec<f64>,
+    edges: Vec<f64>,
+    /// The cavity (log-odds), then its odds.
+    cavity: Vec<f64>,
+    nu: Intervals,
     out: Vec<f64>,
 }
 
 impl RayScratch {
     fn clear(&mut self) {
-        self.free.clear();
+        for v in [&mut self.z0, &mut self.z1, &mut self.edges, &mut self.cavity] {
+            v.clear();
+        }
         self.slots.clear();
-        self.length.clear();
-        self.mu.clear();
-        self.nu.clear();
-    }
-
-    fn push(&mut self, slot: usize, length: f64, mu: f64, nu: f64) {
-        self.slots.push(slot);
-        self.length.push(length);
-        self.mu.push(mu);
-        self.nu.push(nu);
     }
 }
 
@@ -326,26 +324,29 @@ impl MrfEngine {
                 let Some(seg) = self.limits.forward_model_segment(&ray, &kf.noise) else { continue };
                 traced += 1;
                 z_max = z_max.max(seg.end * ray.cz);
-                let measured = ray.range * ray.cz;
+                let (measured, cz) = (ray.range * ray.cz, ray.cz);
                 let mut likelihood = kf.noise.along_ray(ray.u, ray.v, measured);
+                // First the voxels, each with its cavity: everything it heard but this ray's
+                // own message. Then the likelihood of each, and the messages: each step in a
+                // loop of its own, which the processor overlaps across voxels (interleaved,
+                // each step of a voxel waited for the last).
                 scratch.ray.clear();
-                // Voxels before the first one with any likelihood (the free stretch, about
-                // 40% of a ray's voxels at 0.02 m) get the message 0 whatever anyone's belief:
-                // a surface there would make the reading impossible. Nor does their belief
-                // reach the other voxels' messages (`ray_messages`'s prefix stays 0 through
-                // them). So they need no cavity and no place in the ray's factor.
-                let mut window = false;
-                for_each_crossing(ray.origin, ray.dir, seg.start, seg.end, edge, |b| {
+                // (Walks fail only for a non-finite ray, which has no voxels.)
+                let (Some(bricks), Some(voxels)) =
+                    (Walk::new(ray.origin, ray.dir, edge), Walk::new(ray.origin, ray.dir, r))
+                else {
+                    continue;
+                };
+                bricks.crossings(seg.start, seg.end, |b| {
                     let key = BrickKey(b.key.0);
                     let Some((table, Some(sums))) = scratch.table_of(key, &self.sums) else {
                         return ControlFlow::Continue(()); // unallocated: skipped, as the reference does
                     };
-                    for_each_crossing(ray.origin, ray.dir, b.s_in, b.s_out, r, |c| {
+                    voxels.crossings(b.s_in, b.s_out, |c| {
                         // (A voxel of another brick: rounding at a brick face.)
                         let inside = c.key.brick() == key;
                         let s = if inside { sums.get(c.key.slot()) } else { self.sums.get(c.key) };
                         if let Some(&s) = s {
-                            let length = c.length();
                             let slot = if inside {
                                 scratch.voxel_in(table, c.key, None)
                             } else {
@@ -353,44 +354,51 @@ impl MrfEngine {
                             };
                             let voxel = &mut scratch.voxels[slot];
                             voxel.seen = s;
-                            let nu = likelihood.over(c.s_in * ray.cz, c.s_out * ray.cz);
-                            window |= nu > 0.0;
-                            if window {
-                                // The cavity: everything the voxel heard except this ray's own
-                                // message. (Clamped where `ray_messages` clamps anyway: exp
-                                // overflow is slow.)
-                                let cavity =
-                                    sigmoid(((s - voxel.own * (length * inv_r) as f32) as f64).clamp(-40.0, 40.0));
-                                scratch.ray.push(slot, length, cavity, nu);
-                            } else {
-                                scratch.ray.free.push((slot, length));
-                            }
+                            let edges = c.length() * inv_r;
+                            let buf = &mut scratch.ray;
+                            buf.slots.push(slot);
+                            buf.z0.push(c.s_in * cz);
+                            buf.z1.push(c.s_out * cz);
+                            buf.edges.push(edges);
+                            buf.cavity.push((s - voxel.own * edges as f32) as f64);
                         }
                         ControlFlow::Continue(())
                     });
                     ControlFlow::Continue(())
                 });
-                if scratch.ray.slots.is_empty() && scratch.ray.free.is_empty() {
+                let ray_buf = &mut scratch.ray;
+                if ray_buf.slots.is_empty() {
                     continue;
                 }
+                likelihood.over_each(&ray_buf.z0, &ray_buf.z1, &mut ray_buf.nu);
                 // The chance the surface lies past the segment (outside the map where the
                 // bounds cut the ray short).
                 let beyond = seg.beyond(&ray, &kf.noise, &mut likelihood, r);
-                let ray_buf = &mut scratch.ray;
-                // The free stretch's message: 0 (clamped), unless the ray has no likelihood
-                // anywhere, beyond included, and says nothing (1/2).
-                let free = if window || beyond > 0.0 { logit(MSG_EPS) } else { 0.0 };
-                for &(slot, l) in &ray_buf.free {
-                    let voxel = &mut scratch.voxels[slot];
-                    voxel.length += weight * l * inv_r;
-                    voxel.sum += weight * l * inv_r * free;
-                }
-                ray_messages(&ray_buf.mu, &ray_buf.nu, beyond, &mut ray_buf.out);
-                for j in 0..ray_buf.slots.len() {
-                    let l = ray_buf.length[j];
+                // Voxels before the first one with any likelihood (the free stretch, about
+                // a quarter of a ray's voxels at 0.02 m) get the message 0 whatever anyone's
+                // belief: a surface there would make the reading impossible. Nor does their
+                // belief reach the other voxels' messages (the prefix of
+                // `ray_log_messages` stays 0 through them). So they need no cavity and no
+                // place in the ray's factor; their message is 0 (clamped), unless the ray has
+                // no likelihood anywhere, beyond included, and says nothing (1/2).
+                let nu = &ray_buf.nu.density;
+                let first = nu.iter().position(|&nu| nu > 0.0).unwrap_or(nu.len());
+                let free = if first < nu.len() || beyond > 0.0 { logit(MSG_EPS) } else { 0.0 };
+                for j in 0..first {
                     let voxel = &mut scratch.voxels[ray_buf.slots[j]];
-                    voxel.length += weight * l * inv_r;
-                    voxel.sum += weight * l * inv_r * logit(ray_buf.out[j].clamp(MSG_EPS, 1.0 - MSG_EPS));
+                    voxel.length += weight * ray_buf.edges[j];
+                    voxel.sum += weight * ray_buf.edges[j] * free;
+                }
+                let odds = &mut ray_buf.cavity[first..];
+                for x in odds.iter_mut() {
+                    *x = x.clamp(-MAX_LOG_ODDS, MAX_LOG_ODDS);
+                }
+                exp_in_place(odds);
+                ray_log_messages(odds, &nu[first..], beyond, -logit(MSG_EPS), &mut ray_buf.out);
+                for (j, m) in (first..).zip(&ray_buf.out) {
+                    let voxel = &mut scratch.voxels[ray_buf.slots[j]];
+                    voxel.length += weight * ray_buf.edges[j];
+                    voxel.sum += weight * ray_buf.edges[j] * m;
                 }
             }
         }

@@ -34,8 +34,10 @@ enum Command {
     /// Build a map from a dataset, a laser log or a ROS 2 bag.
     Build(commands::build::Args),
     /// Look into a ROS 2 bag: `bag info BAG`.
+    #[cfg(feature = "bags")]
     Bag(commands::bag::Args),
     /// Write a ROS 2 bag's posed depth images as a TUM-layout dataset.
+    #[cfg(feature = "bags")]
     ExportDataset(commands::bag::ExportArgs),
     /// Learn a per-patch noise model (noise.toml) from measured and true depth images.
     Calibrate(commands::calibrate::Args),
@@ -130,7 +132,9 @@ fn main() {
         }
         match cli.command {
             Command::Build(a) => commands::build::run(a),
+            #[cfg(feature = "bags")]
             Command::Bag(a) => commands::bag::run(a),
+            #[cfg(feature = "bags")]
             Command::ExportDataset(a) => commands::bag::export_dataset(a),
             Command::Calibrate(a) => commands::calibrate::run(a),
             Command::Noise(a) => commands::noise::run(a),

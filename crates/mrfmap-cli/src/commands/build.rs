@@ -16,6 +16,7 @@ use mrfmap::inference::{
 use mrfmap::limits;
 use mrfmap::map::Map;
 use mrfmap::rays::{Aabb, RayLimits};
+#[cfg(feature = "bags")]
 use mrfmap::source::bag::{Bag, BagOptions, bag_frames, bag_scans};
 use mrfmap::source::{BeamSpacing, CarmenLog, CarmenOptions, Dataset, Misses};
 use std::io::Write;
@@ -240,6 +241,7 @@ impl BagArgs {
             || path.join("metadata.yaml").is_file()
     }
 
+    #[cfg(feature = "bags")]
     fn options(&self, depth_topic: String) -> BagOptions {
         BagOptions {
             depth_topic,
@@ -252,12 +254,19 @@ impl BagArgs {
 
     /// The bag's depth frames with poses; skipped images are summarised in a warning.
     pub fn frames(&self, path: &std::path::Path, noise: Option<&std::path::Path>) -> Result<Vec<Frame>> {
-        let depth_topic =
-            self.depth_topic.clone().context("a bag needs --depth-topic or --scan-topic (see `mrfmap bag info`)")?;
-        let options = self.options(depth_topic);
-        let noise = noise.map(NoiseModel::load).transpose()?;
-        let (frames, skipped) = bag_frames(&Bag::open(path)?, &options, noise)?;
-        posed(path, &options.depth_topic, frames, &skipped)
+        #[cfg(not(feature = "bags"))]
+        return Err(without_bags(path, noise));
+        #[cfg(feature = "bags")]
+        {
+            let depth_topic = self
+                .depth_topic
+                .clone()
+                .context("a bag needs --depth-topic or --scan-topic (see `mrfmap bag info`)")?;
+            let options = self.options(depth_topic);
+            let noise = noise.map(NoiseModel::load).transpose()?;
+            let (frames, skipped) = bag_frames(&Bag::open(path)?, &options, noise)?;
+            posed(path, &options.depth_topic, frames, &skipped)
+        }
     }
 
     /// The bag's laser scans with poses (noise: `--noise`'s aggregate, else the engine's).
@@ -267,13 +276,30 @@ impl BagArgs {
         topic: &str,
         noise: Option<&std::path::Path>,
     ) -> Result<Vec<RangeScan>> {
-        let noise = noise.map(|p| NoiseModel::load(p).map(|n| NoiseModel::aggregate(n.bias, n.std))).transpose()?;
-        let (scans, skipped) = bag_scans(&Bag::open(path)?, topic, &self.options(String::new()), noise)?;
-        posed(path, topic, scans, &skipped)
+        #[cfg(not(feature = "bags"))]
+        return Err(without_bags(path, (topic, noise)));
+        #[cfg(feature = "bags")]
+        {
+            let noise = noise.map(|p| NoiseModel::load(p).map(|n| NoiseModel::aggregate(n.bias, n.std))).transpose()?;
+            let (scans, skipped) = bag_scans(&Bag::open(path)?, topic, &self.options(String::new()), noise)?;
+            posed(path, topic, scans, &skipped)
+        }
     }
 }
 
+/// The error for a bag given to a binary built without the `bags` feature (`_unused`: the
+/// arguments only a bag reader would read).
+#[cfg(not(feature = "bags"))]
+fn without_bags<T>(path: &std::path::Path, _unused: T) -> anyhow::Error {
+    anyhow::anyhow!(
+        "{}: this mrfmap was built without ROS bag support (the `bags` feature); \
+         rebuild with default features, e.g. `cargo install --path crates/mrfmap-cli`",
+        path.display()
+    )
+}
+
 /// `items` with a warning for the `skipped` ones, or an error when none has a pose.
+#[cfg(feature = "bags")]
 fn posed<T>(path: &std::path::Path, topic: &str, items: Vec<T>, skipped: &[String]) -> Result<Vec<T>> {
     if let Some(first) = skipped.first() {
         tracing::warn!(

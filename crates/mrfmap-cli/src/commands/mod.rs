@@ -1,6 +1,7 @@
 //! One module per subcommand; the small map operations (crop, clear, merge, diff, project)
 //! share `ops`.
 
+#[cfg(feature = "bags")]
 pub mod bag;
 pub mod bench;
 pub mod build;

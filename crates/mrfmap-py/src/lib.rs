@@ -10,7 +10,8 @@ use std::sync::{Arc, Mutex};
 
 use mrfmap::frames::{Beam, Camera, DepthImage, Frame, NoiseModel, Pose, RangeScan};
 use mrfmap::inference::{
-    Budget, CrmParams, Engine, EngineConfig, EngineKind, KeyframeId, MrfEngine, MrfParams, new_engine,
+    Budget, CrmParams, Engine, EngineConfig, EngineKind, Extent, KeyframeId, MrfEngine, MrfParams, check_build,
+    frames_extent, new_engine, scan_extent,
 };
 use mrfmap::map::Map;
 use mrfmap::outputs::{
@@ -21,7 +22,7 @@ use mrfmap::rays::{Aabb, RayLimits};
 use mrfmap::source::bag::{Bag, BagOptions, bag_frames};
 use nalgebra::{Matrix3, Rotation3, Translation3, UnitQuaternion};
 use numpy::{PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2};
-use pyo3::exceptions::{PyOSError, PyValueError};
+use pyo3::exceptions::{PyMemoryError, PyOSError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
@@ -121,12 +122,22 @@ impl Inner {
 #[pyclass(module = "mrfmap")]
 struct Mapper {
     inner: Mutex<Inner>,
+    /// What the engine was made from: its memory estimates.
+    config: EngineConfig,
     camera: Camera,
     noise: Option<Arc<NoiseModel>>,
     frames: Mutex<usize>,
 }
 
 impl Mapper {
+    /// Refuses a frame or scan spanning `extent` whose map alone would need more memory than
+    /// the limit (`MRFMAP_MAX_MEMORY`, else three quarters of physical memory), as the CLI
+    /// refuses a build: `MemoryError`, before any allocation.
+    fn check_memory(&self, extent: Option<Extent>) -> PyResult<()> {
+        let advice = "use a coarser resolution or a max_range";
+        check_build(&self.config, extent, 1, advice).map_err(|e| PyMemoryError::new_err(e.to_string()))
+    }
+
     fn lock(&self) -> std::sync::MutexGuard<'_, Inner> {
         self.inner.lock().unwrap_or_else(|p| p.into_inner())
     }
@@ -173,20 +184,14 @@ impl Mapper {
         };
         let limits = RayLimits { max_range, bounds: None };
         let mrf = MrfParams { prior, iterations, ..MrfParams::default() };
+        let config =
+            EngineConfig { kind, resolution, limits, logodds: Default::default(), mrf, crm: CrmParams { particles } };
         let inner = if kind == EngineKind::Mrf {
-            Inner::Mrf(Box::new(MrfEngine::new(resolution, limits, mrf).map_err(py_err)?))
+            Inner::Mrf(Box::new(MrfEngine::new(resolution, limits, config.mrf).map_err(py_err)?))
         } else {
-            let config = EngineConfig {
-                kind,
-                resolution,
-                limits,
-                logodds: Default::default(),
-                mrf,
-                crm: CrmParams { particles },
-            };
             Inner::Online(new_engine(&config).map_err(py_err)?)
         };
-        Ok(Mapper { inner: Mutex::new(inner), camera, noise, frames: Mutex::new(0) })
+        Ok(Mapper { inner: Mutex::new(inner), config, camera, noise, frames: Mutex::new(0) })
     }
 
     /// Adds a depth image taken from `pose`; returns its id (the MRF keyframe id). MRF with
@@ -239,6 +244,9 @@ impl Mapper {
             camera: self.camera,
             noise: self.noise.clone(),
         };
+        let position = frame.pose.translation.vector.into();
+        let extent = frames_extent(std::iter::once(position), std::slice::from_ref(&frame), 1, &self.config);
+        self.check_memory(extent)?;
         let id = py
             .detach(|| match (&mut *self.lock(), budget) {
                 (Inner::Mrf(e), None) => e.add_keyframe(frame).map(|k| k.0),
@@ -351,6 +359,7 @@ impl Mapper {
         let noise = self.noise.clone().filter(|n| n.patches.is_none());
         let mut count = self.frames.lock().unwrap_or_else(|p| p.into_inner());
         let scan = RangeScan::new(*count, pose, beams, max_range, noise).map_err(py_err)?;
+        self.check_memory(scan_extent(std::slice::from_ref(&scan), &self.config))?;
         py.detach(|| self.lock().engine_mut().integrate_scan(&scan)).map_err(py_err)?;
         *count += 1;
         Ok(scan.index as u64)

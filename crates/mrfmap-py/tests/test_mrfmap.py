@@ -259,3 +259,20 @@ def test_add_bag_equals_add_frame(tmp_path, engine):
         mrfmap.Mapper(0.05, fx=61.0, fy=60.0, cx=39.5, cy=29.5, width=80, height=60).add_bag(tmp_path / "bag", "/cam/depth", fixed_frame="map")
     with pytest.raises(ValueError, match="does not connect|no image"):
         a.add_bag(tmp_path / "bag", "/cam/depth", fixed_frame="world")
+
+
+@pytest.mark.parametrize("engine", ["logodds", "crm"])
+def test_a_frame_or_scan_too_large_for_memory_is_refused_before_any_work(engine):
+    # A nanometre voxel: the CLI's estimate says petabytes; Python refuses as it does, where
+    # it once grew to 23.6 GB and was killed. (The MRF allocates around depth points only:
+    # its estimate at 1e-9 m is small, and rightly so.)
+    m = mrfmap.Mapper(1e-9, engine=engine, particles=21, **CAM)
+    with pytest.raises(MemoryError, match="memory"):
+        m.add_frame(wall(), pose())
+    dirs = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    with pytest.raises(MemoryError, match="memory"):
+        m.add_scan(pose(), dirs, np.array([2.0, 2.0]), 4.0)
+    assert m.map().voxels()[1].size == 0
+    # The same frame at a sane resolution goes in.
+    ok = mrfmap.Mapper(0.05, engine=engine, particles=21, **CAM)
+    ok.add_frame(wall(), pose())

@@ -11,9 +11,8 @@ use mrfmap::atomic_file::write_atomic;
 use mrfmap::frames::{Frame, NoiseModel, Poly, RangeScan};
 use mrfmap::inference::{
     Allocation, Budget, CrmParams, Engine, EngineConfig, EngineKind, Extent, KeyframeSelection, LogOddsParams, Marking,
-    MrfEngine, MrfParams, estimate_memory, new_engine,
+    MrfEngine, MrfParams, check_build, frames_extent, new_engine, scan_extent,
 };
-use mrfmap::limits;
 use mrfmap::map::Map;
 use mrfmap::rays::{Aabb, RayLimits};
 #[cfg(feature = "bags")]
@@ -457,10 +456,11 @@ pub fn parse_ranges(text: &str) -> Vec<usize> {
         .collect()
 }
 
-/// Pixels (per side) between the sampled pixels of the memory estimate.
-const SAMPLE_STRIDE: u32 = 8;
 /// Frames decoded for the memory estimate, at most.
 const SAMPLE_FRAMES: usize = 8;
+
+/// What a build refused for memory can change.
+const BUILD_ADVICE: &str = "use a coarser --resolution, or map less with --bounds or --max-range";
 
 /// Where the frames `indices` of `dataset` look, estimated from every pose and a few decoded
 /// frames (decoding every frame twice would double the I/O).
@@ -469,82 +469,6 @@ pub fn dataset_extent(dataset: &Dataset, indices: &[usize], config: &EngineConfi
     let sampled = indices.iter().step_by(step).map(|&i| dataset.frame(i)).collect::<mrfmap::Result<Vec<_>>>()?;
     let positions = indices.iter().map(|&i| dataset.frames()[i].pose.translation.vector.into());
     Ok(frames_extent(positions, &sampled, indices.len(), config))
-}
-
-/// Where `count` posed depth frames look: every one of their `positions`, and the end points of
-/// every `SAMPLE_STRIDE`-th pixel of the `sampled` frames, whose ray length is scaled up to all.
-pub fn frames_extent(
-    positions: impl Iterator<Item = [f64; 3]>,
-    sampled: &[Frame],
-    count: usize,
-    config: &EngineConfig,
-) -> Option<Extent> {
-    let max_range = config.limits.max_range.unwrap_or(f64::INFINITY);
-    let mut points: Vec<[f64; 3]> = positions.collect();
-    let mut length = 0.0;
-    let mut surfaces = Vec::new();
-    for frame in sampled {
-        let cam = &frame.camera;
-        let mut surface = Vec::new();
-        for v in (0..cam.height).step_by(SAMPLE_STRIDE as usize) {
-            for u in (0..cam.width).step_by(SAMPLE_STRIDE as usize) {
-                if let Some(z) = frame.depth.get(u, v) {
-                    let ray = cam.pixel_ray(u as f64, v as f64);
-                    let range = (ray.norm() * z as f64).min(max_range);
-                    length += range;
-                    let end: [f64; 3] = (frame.pose * nalgebra::Point3::from(ray.normalize() * range)).coords.into();
-                    points.push(end);
-                    surface.push(end);
-                }
-            }
-        }
-        surfaces.push(surface);
-    }
-    let scale = (SAMPLE_STRIDE * SAMPLE_STRIDE) as f64 * count as f64 / sampled.len().max(1) as f64;
-    Extent::new(points, length * scale, config).map(|e| e.with_surface(&surfaces, config.resolution))
-}
-
-/// Where laser scans look: every beam's end point (misses at the maximum range).
-pub fn scan_extent(scans: &[RangeScan], config: &EngineConfig) -> Option<Extent> {
-    let mut points = Vec::new();
-    let mut length = 0.0;
-    for s in scans {
-        points.push(s.pose.translation.vector.into());
-        for b in &s.beams {
-            let r = b.range.unwrap_or(s.max_range).min(config.limits.max_range.unwrap_or(f64::INFINITY));
-            length += r;
-            let d = nalgebra::Vector3::from(b.dir) * r;
-            points.push((s.pose * nalgebra::Point3::from(d)).coords.into());
-        }
-    }
-    Extent::new(points, length, config)
-}
-
-/// Refuses a build whose memory estimate is over the limit, and warns when a voxel is larger
-/// than everything the sensors saw.
-pub fn check_build(config: &EngineConfig, extent: Option<Extent>, readings: usize) -> Result<()> {
-    let Some(extent) = extent else { return Ok(()) };
-    let what = format!("a {} map at {} m", config.kind, config.resolution);
-    let estimate = estimate_memory(config, &extent, readings);
-    // Big builds say so before they start (a fine resolution can take minutes and gigabytes).
-    if estimate > (1u64 << 30) as f64 {
-        tracing::info!(
-            "{what}: expect about {} of memory (limit {})",
-            limits::human(estimate),
-            limits::human(limits::max_memory() as f64)
-        );
-    } else {
-        tracing::debug!("{what}: memory estimate {}", limits::human(estimate));
-    }
-    limits::check_memory(&what, estimate, "use a coarser --resolution, or map less with --bounds or --max-range")?;
-    if config.resolution > extent.size() {
-        tracing::warn!(
-            "a {} m voxel is larger than everything the sensors saw ({:.2} m across): the map will be a few voxels",
-            config.resolution,
-            extent.size()
-        );
-    }
-    Ok(())
 }
 
 /// Integrates the readings `indices` (fetched through `reading`) with the engine `config`
@@ -660,7 +584,7 @@ pub fn run(a: Args) -> Result<()> {
         let scans = a.bag.scans(&a.dataset, topic, a.options.noise.as_deref())?;
         let indices = select_frames(scans.len(), &a.frames, &a.exclude)?;
         let chosen: Vec<RangeScan> = indices.iter().map(|&i| scans[i].clone()).collect();
-        check_build(&config, scan_extent(&chosen, &config), chosen.len())?;
+        check_build(&config, scan_extent(&chosen, &config), chosen.len(), BUILD_ADVICE)?;
         tracing::info!("{}: {} of {} scans, engine {kind}", a.dataset.display(), indices.len(), scans.len());
         (build_map(&indices, &config, |i| Ok(scans[i].clone()))?, indices)
     } else if BagArgs::is_bag(&a.dataset) {
@@ -669,7 +593,7 @@ pub fn run(a: Args) -> Result<()> {
         let step = indices.len().div_ceil(SAMPLE_FRAMES).max(1);
         let sampled: Vec<Frame> = indices.iter().step_by(step).map(|&i| frames[i].clone()).collect();
         let positions = indices.iter().map(|&i| frames[i].pose.translation.vector.into());
-        check_build(&config, frames_extent(positions, &sampled, indices.len(), &config), indices.len())?;
+        check_build(&config, frames_extent(positions, &sampled, indices.len(), &config), indices.len(), BUILD_ADVICE)?;
         tracing::info!(
             "{}: {} of {} depth images, engine {kind}, resolution {} m",
             a.dataset.display(),
@@ -683,7 +607,7 @@ pub fn run(a: Args) -> Result<()> {
         let scans = a.laser.scans(&log, a.resolution, a.options.noise.as_deref())?;
         let indices = select_frames(scans.len(), &a.frames, &a.exclude)?;
         let chosen: Vec<RangeScan> = indices.iter().map(|&i| scans[i].clone()).collect();
-        check_build(&config, scan_extent(&chosen, &config), chosen.len())?;
+        check_build(&config, scan_extent(&chosen, &config), chosen.len(), BUILD_ADVICE)?;
         tracing::info!(
             "{}: {} of {} laser scans, engine {kind}, resolution {} m",
             a.dataset.display(),
@@ -695,7 +619,7 @@ pub fn run(a: Args) -> Result<()> {
     } else {
         let dataset = a.options.open(&a.dataset)?;
         let indices = select_frames(dataset.len(), &a.frames, &a.exclude)?;
-        check_build(&config, dataset_extent(&dataset, &indices, &config)?, indices.len())?;
+        check_build(&config, dataset_extent(&dataset, &indices, &config)?, indices.len(), BUILD_ADVICE)?;
         tracing::info!(
             "{}: {} of {} frames, engine {kind}, resolution {} m",
             a.dataset.display(),

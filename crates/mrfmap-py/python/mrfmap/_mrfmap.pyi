@@ -49,7 +49,10 @@ class Mapper:
 
         Float depth is in metres (0, NaN and infinity: no measurement); uint16 depth needs
         ``depth_scale`` (units per metre). Returns the frame's id (the keyframe id for the
-        MRF engine). Raises ``ValueError`` on a wrong dtype or shape, a NaN or non-rigid pose.
+        MRF engine). Raises ``ValueError`` on a wrong dtype or shape, a NaN or non-rigid pose,
+        and ``MemoryError`` (before any work) when the map this frame alone would make needs
+        more memory than the limit (``MRFMAP_MAX_MEMORY``, else three quarters of physical
+        memory; the CLI's estimate), e.g. at far too fine a resolution.
 
         MRF with ``budget_ms`` and/or ``budget_tiles``: the online schedule. The keyframe is
         traced whole as it arrives, then belief propagation works on the 16x16-pixel tiles
@@ -68,6 +71,7 @@ class Mapper:
         ranges (N,) in metres (NaN, infinity or <= 0: no return, free up to ``max_range``),
         sensor-to-world ``pose`` (4x4). Log-odds and CRM only (``ValueError`` for the MRF).
         The mapper's noise model applies in range when it has no per-patch table.
+        ``MemoryError`` as for ``add_frame``.
         """
     def add_bag(
         self,

@@ -17,7 +17,13 @@
 //! refuse a build that cannot fit, not to size a machine.
 
 use super::{EngineConfig, EngineKind};
+use crate::error::Result;
+use crate::frames::{Frame, RangeScan};
+use crate::limits;
 use crate::map::BRICK_EDGE;
+
+/// Pixels (per side) between the sampled pixels of [`frames_extent`].
+const SAMPLE_STRIDE: u32 = 8;
 
 /// Where the sensors were and how far they saw.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -122,6 +128,84 @@ pub fn estimate_memory(config: &EngineConfig, extent: &Extent, readings: usize) 
         }
     };
     extent.bricks(config.resolution) * per_brick
+}
+
+/// Where `count` posed depth frames look: every one of their `positions`, and the end points of
+/// every `SAMPLE_STRIDE`-th pixel of the `sampled` frames, whose ray length is scaled up to all.
+pub fn frames_extent(
+    positions: impl Iterator<Item = [f64; 3]>,
+    sampled: &[Frame],
+    count: usize,
+    config: &EngineConfig,
+) -> Option<Extent> {
+    let max_range = config.limits.max_range.unwrap_or(f64::INFINITY);
+    let mut points: Vec<[f64; 3]> = positions.collect();
+    let mut length = 0.0;
+    let mut surfaces = Vec::new();
+    for frame in sampled {
+        let cam = &frame.camera;
+        let mut surface = Vec::new();
+        for v in (0..cam.height).step_by(SAMPLE_STRIDE as usize) {
+            for u in (0..cam.width).step_by(SAMPLE_STRIDE as usize) {
+                if let Some(z) = frame.depth.get(u, v) {
+                    let ray = cam.pixel_ray(u as f64, v as f64);
+                    let range = (ray.norm() * z as f64).min(max_range);
+                    length += range;
+                    let end: [f64; 3] = (frame.pose * nalgebra::Point3::from(ray.normalize() * range)).coords.into();
+                    points.push(end);
+                    surface.push(end);
+                }
+            }
+        }
+        surfaces.push(surface);
+    }
+    let scale = (SAMPLE_STRIDE * SAMPLE_STRIDE) as f64 * count as f64 / sampled.len().max(1) as f64;
+    Extent::new(points, length * scale, config).map(|e| e.with_surface(&surfaces, config.resolution))
+}
+
+/// Where laser scans look: every beam's end point (misses at the maximum range).
+pub fn scan_extent(scans: &[RangeScan], config: &EngineConfig) -> Option<Extent> {
+    let mut points = Vec::new();
+    let mut length = 0.0;
+    for s in scans {
+        points.push(s.pose.translation.vector.into());
+        for b in &s.beams {
+            let r = b.range.unwrap_or(s.max_range).min(config.limits.max_range.unwrap_or(f64::INFINITY));
+            length += r;
+            let d = nalgebra::Vector3::from(b.dir) * r;
+            points.push((s.pose * nalgebra::Point3::from(d)).coords.into());
+        }
+    }
+    Extent::new(points, length, config)
+}
+
+/// Refuses a build of `readings` frames or scans spanning `extent` whose memory estimate is
+/// over [`limits::max_memory`] (the error names the estimate, the limit and `advice`), and
+/// warns when a voxel is larger than everything the sensors saw. No extent (nothing seen):
+/// nothing to refuse.
+pub fn check_build(config: &EngineConfig, extent: Option<Extent>, readings: usize, advice: &str) -> Result<()> {
+    let Some(extent) = extent else { return Ok(()) };
+    let what = format!("a {} map at {} m", config.kind, config.resolution);
+    let estimate = estimate_memory(config, &extent, readings);
+    // Big builds say so before they start (a fine resolution can take minutes and gigabytes).
+    if estimate > (1u64 << 30) as f64 {
+        tracing::info!(
+            "{what}: expect about {} of memory (limit {})",
+            limits::human(estimate),
+            limits::human(limits::max_memory() as f64)
+        );
+    } else {
+        tracing::debug!("{what}: memory estimate {}", limits::human(estimate));
+    }
+    limits::check_memory(&what, estimate, advice)?;
+    if config.resolution > extent.size() {
+        tracing::warn!(
+            "a {} m voxel is larger than everything the sensors saw ({:.2} m across): the map will be a few voxels",
+            config.resolution,
+            extent.size()
+        );
+    }
+    Ok(())
 }
 
 /// Bricks the MRF's band allocates per brick holding end points (the brick and its neighbours

@@ -25,6 +25,7 @@
 //! chain, and the logarithms are one vectorised pass. [`ray_messages`] is the probability
 //! form on top of it (the brute-force tests below check both).
 
+use crate::inference::sigmoid;
 use crate::inference::vecmath::ln_clamped_in_place;
 
 /// Incoming messages are kept in `[MU_EPS, 1 - MU_EPS]`.
@@ -56,7 +57,7 @@ pub fn ray_messages(mu: &[f64], nu: &[f64], nu_beyond: f64, out: &mut Vec<f64>) 
         .collect();
     ray_log_messages(&odds, nu, nu_beyond, 700.0, out);
     for m in out.iter_mut() {
-        *m = 1.0 / (1.0 + (-*m).exp());
+        *m = sigmoid(*m);
     }
 }
 

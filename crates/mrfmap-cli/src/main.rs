@@ -43,6 +43,9 @@ enum Command {
     Calibrate(commands::calibrate::Args),
     /// Look at a noise model: `noise plot noise.toml -o curves.png`.
     Noise(commands::noise::Args),
+    /// Make a noise-free dataset noisy, as a depth camera would read it (Kinect model or a
+    /// noise.toml); the clean depth becomes gt_depth/.
+    AddNoise(commands::noise::AddArgs),
     /// Export a map to PLY, OctoMap (.bt, .ot) or a Foxglove scene (.mcap).
     Export(commands::export::Args),
     /// A PNG picture of a map from a viewpoint, or a slice of it.
@@ -138,6 +141,7 @@ fn main() {
             Command::ExportDataset(a) => commands::bag::export_dataset(a),
             Command::Calibrate(a) => commands::calibrate::run(a),
             Command::Noise(a) => commands::noise::run(a),
+            Command::AddNoise(a) => commands::noise::add(a),
             Command::Export(a) => commands::export::run(a),
             Command::View(a) => commands::view::run(a),
             Command::Info(a) => commands::info::run(a),

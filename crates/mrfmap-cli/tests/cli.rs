@@ -405,6 +405,77 @@ fn calibrate_and_plot_noise() {
     assert!(stderr(&o).contains("--depth-scale"), "{}", stderr(&o));
 }
 
+/// `add-noise`: a noisy twin of a dataset (Kinect model or a noise.toml), the input's depth as
+/// its gt_depth, seeded, and nothing written when anything fails.
+#[test]
+fn add_noise_writes_a_noisy_twin() {
+    use mrfmap::source::Dataset;
+    let dir = workdir("add-noise");
+    let data = dataset(&dir);
+    let out = dir.join("noisy");
+    let o = run(&["add-noise", s(&data), "-o", s(&out), "--seed", "4"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(stdout(&o).contains("4 frames") && stdout(&o).contains("depth levels"), "{}", stdout(&o));
+    let (input, noisy) = (Dataset::open(&data).unwrap(), Dataset::open(&out).unwrap());
+    assert_eq!(noisy.len(), input.len());
+    assert!(noisy.noise().is_some(), "noise.toml: the model to map with");
+    let fb = mrfmap::source::StructuredLight::kinect().baseline * noisy.camera().fx;
+    for i in 0..input.len() {
+        let clean = input.frame(i).unwrap();
+        let got = noisy.frame(i).unwrap();
+        assert_eq!(noisy.truth_depth(i).unwrap().unwrap(), clean.depth, "gt_depth is the input's depth");
+        assert_eq!(got.pose, clean.pose);
+        assert_ne!(got.depth, clean.depth);
+        // Kinect depth levels: f b / (k / 8) m, to the 0.2 mm the scene's 5000 scale stores.
+        for &z in got.depth.data().iter().filter(|&&z| z > 0.0) {
+            let k = 8.0 * fb / f64::from(z);
+            assert!((fb / (k.round() / 8.0) - f64::from(z)).abs() < 2e-4, "{z} m is not a disparity level");
+        }
+    }
+    let again = dir.join("again");
+    assert!(run(&["add-noise", s(&data), "-o", s(&again), "--seed", "4", "-q"]).status.success());
+    for i in 0..input.len() {
+        let name = format!("depth/{i:06}.png");
+        assert_eq!(std::fs::read(out.join(&name)).unwrap(), std::fs::read(again.join(&name)).unwrap(), "seeded");
+    }
+
+    // A noise.toml model.
+    let model = dir.join("model.toml");
+    std::fs::write(&model, "bias = [0.0]\nstd = [0.01]\n").unwrap();
+    let gauss = dir.join("gauss");
+    let o = run(&["add-noise", s(&data), "-o", s(&gauss), "--model", s(&model), "-q"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(
+        std::fs::read_to_string(gauss.join("noise.toml")).unwrap(),
+        mrfmap::frames::NoiseModel::load(&model).unwrap().to_toml()
+    );
+
+    // Refusals: an existing output (left as it was), a model that is neither, --shadows with a
+    // file, a patch grid that does not fit the camera.
+    let o = run(&["add-noise", s(&data), "-o", s(&out)]);
+    assert!(!o.status.success() && stderr(&o).contains("already exists"), "{}", stderr(&o));
+    assert!(Dataset::open(&out).is_ok());
+    let o = run(&["add-noise", s(&data), "-o", s(&dir.join("x")), "--model", "kinnect"]);
+    assert!(!o.status.success() && stderr(&o).contains("kinnect"), "{}", stderr(&o));
+    let o = run(&["add-noise", s(&data), "-o", s(&dir.join("x")), "--model", s(&model), "--shadows"]);
+    assert!(!o.status.success() && stderr(&o).contains("--shadows"), "{}", stderr(&o));
+    std::fs::write(
+        &model,
+        "bias = [0.0]\nstd = [0.01]\n[patches]\nsize = 8\nrows = 1\ncols = 1\nbias = [[0.0]]\nstd = [[0.01]]\n",
+    )
+    .unwrap();
+    let o = run(&["add-noise", s(&data), "-o", s(&dir.join("x")), "--model", s(&model)]);
+    assert!(!o.status.success() && stderr(&o).contains("patch grid"), "{}", stderr(&o));
+
+    // A frame that cannot be read half-way: the error names it and nothing is left behind.
+    std::fs::write(data.join("depth/000002.png"), b"not a png").unwrap();
+    let o = run(&["add-noise", s(&data), "-o", s(&dir.join("broken"))]);
+    assert!(!o.status.success() && stderr(&o).contains("000002.png"), "{}", stderr(&o));
+    assert!(!stderr(&o).contains("panicked"));
+    let left: Vec<_> = std::fs::read_dir(&dir).unwrap().flatten().map(|e| e.file_name()).collect();
+    assert!(!left.iter().any(|n| n.to_string_lossy().contains("broken")), "{left:?}");
+}
+
 /// `export --bt/--ot`: read back by our reader always, and by OctoMap's own `convert_octree`
 /// (Debian's octomap-tools) where it is installed.
 #[test]

@@ -126,3 +126,46 @@ fn intel_lab_log_reads_and_maps_the_lab() {
         assert!(share > 0.02 && share < 0.2, "{} occupied share {share}", map.engine);
     }
 }
+
+/// `add-noise --model kinect` against the published noisy depth of Augmented ICL-NUIM
+/// livingroom1 (frames 0-4, `noisy_sample/`): the simulated noise has the published frames'
+/// statistics within 30% (issue #33's check) for ten sensor seeds. MAD, 95th percentile of |e|,
+/// lost pixels and depth levels hold per frame and seed. The median (about 2 mm) is set mostly by
+/// the sensor's fixed distortion field, one draw of which the published frames are: per seed it
+/// spans 1.7-2.8 mm, so it is checked on the ten seeds' average. The model's parameters were read
+/// off these same frames (docs/ALGORITHMS.md 3.1): this is an in-sample check.
+#[test]
+#[cfg_attr(not(shared_data), ignore = "needs ../shared/data, absent in a plain clone")]
+fn kinect_noise_has_the_published_icl_statistics() {
+    use mrfmap::source::{StructuredLight, noise_statistics, quantise_depth, read_depth_png};
+    let Some(root) = shared("icl-livingroom1") else {
+        return;
+    };
+    let ds = Dataset::open(&root).unwrap();
+    let camera = *ds.camera();
+    let sensor = StructuredLight::kinect();
+    let within = |what: &str, sim: f64, publ: f64| {
+        assert!((sim - publ).abs() <= 0.3 * publ.abs(), "{what}: simulated {sim} vs published {publ}");
+    };
+    let (mut published_median, mut simulated_median, mut n) = (0.0, 0.0, 0.0);
+    for i in 0..5 {
+        let clean = ds.frame(i).unwrap().depth;
+        let published =
+            read_depth_png(&root.join(format!("noisy_sample/{i:06}.png")), camera.depth_scale, None).unwrap();
+        let p = noise_statistics(&published, &clean, camera.depth_scale).unwrap();
+        for seed in 0..10 {
+            // Through the 16-bit millimetre encoding, as a written dataset stores it.
+            let simulated = quantise_depth(&sensor.apply(&clean, &camera, seed, i as u64), camera.depth_scale);
+            let s = noise_statistics(&simulated, &clean, camera.depth_scale).unwrap();
+            let at = format!("frame {i} seed {seed}");
+            within(&format!("{at} MAD"), s.mad, p.mad);
+            within(&format!("{at} p95 |e|"), s.p95_abs, p.p95_abs);
+            within(&format!("{at} lost share"), s.lost, p.lost);
+            within(&format!("{at} levels"), s.levels as f64, p.levels as f64);
+            published_median += p.median;
+            simulated_median += s.median;
+            n += 1.0;
+        }
+    }
+    within("median over seeds and frames", simulated_median / n, published_median / n);
+}

@@ -1,10 +1,11 @@
-//! `mrfmap noise`: look at a noise model.
+//! `mrfmap noise`: look at a noise model; `mrfmap add-noise`: make a clean dataset noisy.
 
 use std::path::PathBuf;
 
-use anyhow::{Result, bail};
+use anyhow::{Context, Result, bail};
 use mrfmap::frames::NoiseModel;
 use mrfmap::outputs::pictures::noise_figure;
+use mrfmap::source::{Dataset, DepthNoise, StructuredLight, add_noise};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -50,5 +51,72 @@ fn plot(a: PlotArgs) -> Result<()> {
     }
     noise_figure(&model, (lo, hi), a.depth).save(&a.output)?;
     println!("{}", a.output.display());
+    Ok(())
+}
+
+/// `mrfmap add-noise`.
+#[derive(clap::Args)]
+pub struct AddArgs {
+    /// Dataset with noise-free depth (TUM / ICL-NUIM layout).
+    dataset: PathBuf,
+    /// Output dataset folder (must not exist): noisy `depth/`, the input's depth as `gt_depth/`,
+    /// and `noise.toml`, the forward model to map it with.
+    #[arg(short, long)]
+    output: PathBuf,
+    /// `kinect`: a structured-light sensor in disparity, as Augmented ICL-NUIM's noisy depth
+    /// (1/8 px quantisation, a fixed distortion, white noise, lateral jitter, a border and
+    /// grazing-angle holes; docs/ALGORITHMS.md 3.1). Or a `noise.toml`: Gaussian in depth with
+    /// its bias and std (per patch or aggregate).
+    #[arg(long, default_value = "kinect")]
+    model: String,
+    /// Seed: the sensor (its fixed distortion) and every frame's noise follow from it.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Kinect only: lose pixels the projector cannot light (shadows beside depth edges), as a
+    /// real Kinect does; Augmented ICL-NUIM's frames have none.
+    #[arg(long)]
+    shadows: bool,
+}
+
+pub fn add(a: AddArgs) -> Result<()> {
+    let noise = if a.model == "kinect" {
+        DepthNoise::StructuredLight(StructuredLight { shadows: a.shadows, ..StructuredLight::kinect() })
+    } else {
+        if a.shadows {
+            bail!("--shadows is a setting of --model kinect, not of a noise.toml model");
+        }
+        let path = PathBuf::from(&a.model);
+        if !path.is_file() {
+            bail!("--model {}: neither `kinect` nor an existing noise.toml file", a.model);
+        }
+        DepthNoise::Model(NoiseModel::load(&path)?)
+    };
+    let dataset = Dataset::open(&a.dataset)?;
+    if dataset.truth_depth(0)?.is_some() {
+        tracing::warn!(
+            "{} already has gt_depth/: its depth/ is made noisy and written as the new gt_depth/",
+            a.dataset.display()
+        );
+    }
+    let bar = crate::progress::bar(dataset.len() as u64, "add-noise");
+    let summary = add_noise(&dataset, &a.output, &noise, a.seed, |done| bar.set_position(done as u64))
+        .with_context(|| format!("adding noise to {}", a.dataset.display()))?;
+    bar.finish_and_clear();
+    let stats: Vec<_> = summary.statistics.iter().flatten().collect();
+    println!("{}: {} frames", a.output.display(), summary.frames);
+    if !stats.is_empty() {
+        let mean = |f: &dyn Fn(&mrfmap::source::NoiseStatistics) -> f64| {
+            stats.iter().map(|s| f(s)).sum::<f64>() / stats.len() as f64
+        };
+        println!(
+            "noisy - clean, mean over frames: median {:+.1} mm, MAD {:.1} mm, 95th percentile |e| {:.1} mm, \
+             {:.1}% of valid pixels lost, {:.0} depth levels per frame",
+            1e3 * mean(&|s| s.median),
+            1e3 * mean(&|s| s.mad),
+            1e3 * mean(&|s| s.p95_abs),
+            100.0 * mean(&|s| s.lost),
+            mean(&|s| s.levels as f64)
+        );
+    }
     Ok(())
 }

@@ -11,6 +11,7 @@ use serde::Deserialize;
 
 use crate::error::{Error, Result, parse_toml, read_text};
 use crate::frames::{Camera, DepthImage};
+use crate::random::Rng;
 
 /// Standard deviations are clamped below at this value (metres), so a fitted polynomial that
 /// dips to zero or below never yields a degenerate Gaussian.
@@ -285,6 +286,27 @@ impl NoiseModel {
             }
         }
         out
+    }
+
+    /// A noisy reading of `truth` drawn from this model, per patch when it has patches:
+    /// `z + bias(z) + std(z) N(0, 1)` at each valid pixel (a draw at or below 0 is a hole).
+    /// Deterministic in `(seed, view)` whatever the thread count: each row has its own stream.
+    pub fn sample(&self, truth: &DepthImage, seed: u64, view: u64) -> DepthImage {
+        use rayon::prelude::*;
+        let w = truth.width() as usize;
+        let mut data = truth.data().to_vec();
+        data.par_chunks_mut(w).enumerate().for_each(|(v, row)| {
+            let mut rng = Rng::stream(seed, view, v as u64);
+            for (u, z) in row.iter_mut().enumerate() {
+                let n = rng.normal(); // drawn for every pixel so streams do not depend on validity
+                if *z > 0.0 {
+                    let (bias, std) = self.bias_std(u as u32, v as u32, f64::from(*z));
+                    let m = f64::from(*z) + bias + std * n;
+                    *z = if m > 0.0 { m as f32 } else { 0.0 };
+                }
+            }
+        });
+        DepthImage::from_vec(truth.width(), truth.height(), data).expect("same size")
     }
 
     /// The `noise.toml` text of this model.

@@ -55,9 +55,7 @@ pub fn decode_depth_png(
 pub fn write_depth_png(path: &Path, depth: &DepthImage, depth_scale: f64) -> Result<()> {
     let mut bytes = Vec::with_capacity(depth.data().len() * 2);
     for &z in depth.data() {
-        let q = (z as f64 * depth_scale).round();
-        let q = if z > 0.0 && q.is_finite() && q <= u16::MAX as f64 { q as u16 } else { 0 };
-        bytes.extend_from_slice(&q.to_be_bytes());
+        bytes.extend_from_slice(&units(z, depth_scale).to_be_bytes());
     }
     crate::atomic_file::write_atomic(path, |w| {
         let mut enc = png::Encoder::new(w, depth.width(), depth.height());
@@ -68,6 +66,19 @@ pub fn write_depth_png(path: &Path, depth: &DepthImage, depth_scale: f64) -> Res
         writer.write_image_data(&bytes).map_err(std::io::Error::other)?;
         writer.finish().map_err(std::io::Error::other)
     })
+}
+
+/// `depth` as a 16-bit depth PNG at `depth_scale` stores it (what reading it back gives):
+/// whole steps of `1 / depth_scale`, 0 where [`write_depth_png`] writes 0.
+pub fn quantise_depth(depth: &DepthImage, depth_scale: f64) -> DepthImage {
+    let data = depth.data().iter().map(|&z| (f64::from(units(z, depth_scale)) / depth_scale) as f32).collect();
+    DepthImage::from_vec(depth.width(), depth.height(), data).expect("same size")
+}
+
+/// The 16-bit value stored for `z` metres.
+fn units(z: f32, depth_scale: f64) -> u16 {
+    let q = (f64::from(z) * depth_scale).round();
+    if z > 0.0 && q.is_finite() && q <= f64::from(u16::MAX) { q as u16 } else { 0 }
 }
 
 #[cfg(test)]

@@ -11,7 +11,6 @@ use serde::Deserialize;
 
 use crate::error::{Error, Result, parse_toml, read_text};
 use crate::frames::{Camera, DepthImage, Frame, NoiseModel, Pose, look_at};
-use crate::random::Rng;
 
 /// A solid primitive.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -304,33 +303,20 @@ impl Scene {
         Frame { index, timestamp: index as f64, depth, pose: *pose, camera: self.camera, noise }
     }
 
-    /// `truth` with the scene's noise model applied (per patch when it has patches):
-    /// `z + bias(z) + std(z) N(0, 1)`. Deterministic in `(seed, view)` whatever the thread count.
+    /// `truth` with the scene's noise model applied ([`NoiseModel::sample`]); noise-free
+    /// scenes return it unchanged.
     pub fn add_noise(&self, truth: &DepthImage, seed: u64, view: usize) -> DepthImage {
-        use rayon::prelude::*;
-        let Some(noise) = &self.noise else {
-            return truth.clone();
-        };
-        let w = truth.width() as usize;
-        let mut data = truth.data().to_vec();
-        data.par_chunks_mut(w).enumerate().for_each(|(v, row)| {
-            let mut rng = Rng::stream(seed, view as u64, v as u64);
-            for (u, z) in row.iter_mut().enumerate() {
-                let n = rng.normal(); // drawn for every pixel so streams do not depend on validity
-                if *z > 0.0 {
-                    let (bias, std) = noise.bias_std(u as u32, v as u32, *z as f64);
-                    let m = *z as f64 + bias + std * n;
-                    *z = if m > 0.0 { m as f32 } else { 0.0 };
-                }
-            }
-        });
-        DepthImage::from_vec(truth.width(), truth.height(), data).expect("same size")
+        match &self.noise {
+            Some(noise) => noise.sample(truth, seed, view as u64),
+            None => truth.clone(),
+        }
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::random::Rng;
 
     /// Marching reference for `first_hit`: small steps along the ray, first inside sample.
     fn marched(s: &Shape, o: &Vector3<f64>, d: &Vector3<f64>, t_max: f64, h: f64) -> Option<f64> {

@@ -1,4 +1,6 @@
-//! Renders a [`Scene`] to a dataset in the layout [`crate::source::Dataset`] reads.
+//! Writes simulated datasets in the layout [`crate::source::Dataset`] reads: a [`Scene`]
+//! rendered ([`simulate`]), or a noise-free dataset made noisy by a sensor model
+//! ([`add_noise`]). Both go through one [`DatasetWriter`].
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -6,8 +8,8 @@ use std::path::{Path, PathBuf};
 use crate::atomic_file::write_atomic;
 use crate::error::{Error, Result};
 use crate::frames::{Camera, DepthImage, NoiseModel, Poly, Pose, pose_to_tum};
-use crate::source::Scene;
-use crate::source::depth_png::write_depth_png;
+use crate::source::depth_png::{quantise_depth, write_depth_png};
+use crate::source::{Dataset, DepthNoise, NoiseStatistics, Scene, noise_statistics};
 
 /// What [`simulate`] wrote.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -33,6 +35,62 @@ pub fn simulate(scene: &Scene, out: &Path, seed: u64) -> Result<SimulationSummar
     let zero = NoiseModel::aggregate(Poly([0.0; 3]), Poly([0.0; 3]));
     writer.finish(Some(scene.noise.as_ref().unwrap_or(&zero)))?;
     Ok(SimulationSummary { frames: scene.views.len(), valid_pixels })
+}
+
+/// What [`add_noise`] wrote: frames, and the noise statistics of each frame against its clean
+/// depth (`None` for a frame with no pixel valid in both).
+#[derive(Clone, Debug, PartialEq)]
+pub struct NoisySummary {
+    /// Frames written.
+    pub frames: usize,
+    /// Per frame, [`noise_statistics`] of the noisy depth as stored.
+    pub statistics: Vec<Option<NoiseStatistics>>,
+}
+
+/// Writes `dataset` with noisy depth to `out`: `depth/` from `noise` (seeded; frame `i` is
+/// view `i`), `gt_depth/` the input's depth, the input's timestamps, poses and camera, and
+/// `noise.toml` the forward model of `noise` (what the engines should map it with).
+/// `out` must not exist; the dataset is written beside it and renamed into place when complete,
+/// so a failure leaves nothing half-written. `progress` is called after each frame.
+pub fn add_noise(
+    dataset: &Dataset,
+    out: &Path,
+    noise: &DepthNoise,
+    seed: u64,
+    mut progress: impl FnMut(usize),
+) -> Result<NoisySummary> {
+    let camera = *dataset.camera();
+    if let DepthNoise::Model(model) = noise {
+        model.check_camera(&camera).map_err(|m| Error::Invalid(format!("noise model: {m}")))?;
+    }
+    if out.exists() {
+        return Err(Error::file(out, "already exists: choose a new folder for the noisy dataset"));
+    }
+    let name = out.file_name().ok_or_else(|| Error::file(out, "not a folder name"))?;
+    let partial = out.with_file_name(format!(".{}.partial-{}", name.to_string_lossy(), std::process::id()));
+    let written = (|| {
+        let mut writer = DatasetWriter::create(&partial, camera, true)?;
+        let mut statistics = Vec::with_capacity(dataset.len());
+        for (i, info) in dataset.frames().iter().enumerate() {
+            let clean = dataset.frame(i)?.depth;
+            let noisy = quantise_depth(&noise.apply(&clean, &camera, seed, i as u64), camera.depth_scale);
+            statistics.push(noise_statistics(&noisy, &clean, camera.depth_scale));
+            writer.add(info.timestamp, &info.pose, &noisy, Some(&clean))?;
+            progress(i + 1);
+        }
+        let frames = writer.finish(Some(&noise.forward_model(&camera)))?;
+        Ok(NoisySummary { frames, statistics })
+    })();
+    match written {
+        Ok(summary) => {
+            std::fs::rename(&partial, out).map_err(|e| Error::io(out, e))?;
+            Ok(summary)
+        }
+        Err(e) => {
+            let _ = std::fs::remove_dir_all(&partial);
+            Err(e)
+        }
+    }
 }
 
 /// Writes a dataset in the layout [`crate::source::Dataset`] reads, frame by frame: depth

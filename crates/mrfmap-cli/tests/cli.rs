@@ -476,6 +476,81 @@ fn add_noise_writes_a_noisy_twin() {
     assert!(!left.iter().any(|n| n.to_string_lossy().contains("broken")), "{left:?}");
 }
 
+/// `experiment mrfmap-table2` end to end on the small scene: noise added, thresholds wider than
+/// the orbit make frame 0 the only keyframe, every engine is scored on the other three, and the
+/// report, JSON and pictures are written.
+#[test]
+fn mrfmap_table2_experiment_writes_its_report() {
+    let dir = workdir("table2");
+    let data = dataset(&dir);
+    let out = dir.join("t2");
+    let args = ["experiment", "mrfmap-table2", s(&data), "-o", s(&out), "--resolutions", "0.1", "-q"];
+    let o = run(&[&args[..], &["--translation", "100", "--rotation", "100"]].concat());
+    assert!(o.status.success(), "{}", stderr(&o));
+    let report = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(report.contains("| mrf |") && report.contains("paper MRFMap"), "{report}");
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("results.json")).unwrap()).unwrap();
+    assert_eq!(json["keyframes"], serde_json::json!([0]));
+    assert_eq!(json["held_out_views"], serde_json::json!([1, 2, 3]));
+    let rows = json["rows"].as_array().unwrap();
+    assert_eq!(rows.len(), 3);
+    for row in rows {
+        for key in ["accuracy_constant_5cm", "accuracy_model_std"] {
+            let views = row[key]["views"].as_array().unwrap();
+            assert!(!views.is_empty() && views.iter().all(|a| (0.0..=1.0).contains(&a.as_f64().unwrap())), "{row}");
+        }
+        let tag = format!("{}_10cm", row["engine"].as_str().unwrap());
+        assert!(
+            out.join(format!("map_{tag}.png")).is_file() && out.join(format!("accuracy_{tag}_view2.png")).is_file()
+        );
+    }
+    // The noisy dataset stays, and a second run replaces it.
+    assert!(mrfmap::source::Dataset::open(&out.join("noisy")).is_ok());
+    let o = run(&[&args[..], &["--translation", "100", "--rotation", "100", "--engines", "logodds"]].concat());
+    assert!(o.status.success(), "{}", stderr(&o));
+    // Every frame a keyframe: nothing to score on, said before any map is built.
+    let o = run(&[&args[..], &["--translation", "0.001", "--rotation", "0.001"]].concat());
+    assert!(!o.status.success() && stderr(&o).contains("every frame"), "{}", stderr(&o));
+}
+
+/// `experiment crm-icl` end to end on the small scene: steps every two frames and after the
+/// last, scores in range, curves written.
+#[test]
+fn crm_icl_experiment_writes_its_curves() {
+    let dir = workdir("crm-icl");
+    let data = dataset(&dir);
+    let out = dir.join("icl");
+    let o = run(&[
+        "experiment",
+        "crm-icl",
+        s(&data),
+        "-o",
+        s(&out),
+        "--resolution",
+        "0.1",
+        "--every",
+        "3",
+        "--particles",
+        "15",
+        "-q",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("results.json")).unwrap()).unwrap();
+    let steps = json["steps"].as_array().unwrap();
+    assert_eq!(steps.iter().map(|s| s["frames"].as_u64().unwrap()).collect::<Vec<_>>(), vec![3, 4]);
+    for s in steps {
+        for method in ["crm", "logodds"] {
+            let (mae, pcc) = (s[method]["mae"].as_f64().unwrap(), s[method]["pcc_sigma_error"].as_f64().unwrap());
+            assert!((0.0..=1.0).contains(&mae) && (-1.0..=1.0).contains(&pcc), "{s}");
+        }
+    }
+    assert!(json["crm_pcc_above_logodds_at_every_step"].is_boolean());
+    assert!(out.join("mae.png").is_file() && out.join("pcc.png").is_file());
+    assert!(std::fs::read_to_string(out.join("report.md")).unwrap().contains("| 4 |"));
+}
+
 /// `export --bt/--ot`: read back by our reader always, and by OctoMap's own `convert_octree`
 /// (Debian's octomap-tools) where it is installed.
 #[test]
@@ -530,6 +605,8 @@ fn view_pictures_and_slices() {
     reader.next_frame(&mut buf).unwrap();
     let centre = (24 * 64 + 32) * 3;
     assert_ne!(&buf[centre..centre + 3], &[255, 255, 255], "the box top is drawn at the centre");
+    let o = run(&["view", s(&map), "-o", s(&png), "--up", "-y", "--size", "64x48"]);
+    assert!(o.status.success(), "{}", stderr(&o));
     let slice = dir.join("s.png");
     let o = run(&["view", s(&map), "-o", s(&slice), "--slice", "z=0.3"]);
     assert!(o.status.success() && slice.exists(), "{}", stderr(&o));
@@ -538,6 +615,7 @@ fn view_pictures_and_slices() {
         (vec!["--slice", "z=40"], "no voxels at z = 40"),
         (vec!["--eye", "1,2"], "--eye"),
         (vec!["--size", "0x10"], "--size"),
+        (vec!["--up", "+w"], "up axis"),
     ] {
         let bad = dir.join("bad.png");
         let o = run(&[&["view", s(&map), "-o", s(&bad)][..], &args[..]].concat());

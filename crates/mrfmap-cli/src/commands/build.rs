@@ -460,7 +460,7 @@ pub fn parse_ranges(text: &str) -> Vec<usize> {
 const SAMPLE_FRAMES: usize = 8;
 
 /// What a build refused for memory can change.
-const BUILD_ADVICE: &str = "use a coarser --resolution, or map less with --bounds or --max-range";
+pub const BUILD_ADVICE: &str = "use a coarser --resolution, or map less with --bounds or --max-range";
 
 /// Where the frames `indices` of `dataset` look, estimated from every pose and a few decoded
 /// frames (decoding every frame twice would double the I/O).

@@ -1,11 +1,11 @@
 //! `mrfmap noise`: look at a noise model; `mrfmap add-noise`: make a clean dataset noisy.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 use mrfmap::frames::NoiseModel;
 use mrfmap::outputs::pictures::noise_figure;
-use mrfmap::source::{Dataset, DepthNoise, StructuredLight, add_noise};
+use mrfmap::source::{Dataset, DepthNoise, NoiseStatistics, NoisySummary, StructuredLight, add_noise};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -63,34 +63,78 @@ pub struct AddArgs {
     /// and `noise.toml`, the forward model to map it with.
     #[arg(short, long)]
     output: PathBuf,
+    #[command(flatten)]
+    noise: NoiseArgs,
+}
+
+/// The simulated sensor: what `add-noise` and the experiments that add noise share.
+#[derive(clap::Args)]
+pub struct NoiseArgs {
     /// `kinect`: a structured-light sensor in disparity, as Augmented ICL-NUIM's noisy depth
     /// (1/8 px quantisation, a fixed distortion, white noise, lateral jitter, a border and
     /// grazing-angle holes; docs/ALGORITHMS.md 3.1). Or a `noise.toml`: Gaussian in depth with
     /// its bias and std (per patch or aggregate).
     #[arg(long, default_value = "kinect")]
-    model: String,
+    pub model: String,
     /// Seed: the sensor (its fixed distortion) and every frame's noise follow from it.
     #[arg(long, default_value_t = 0)]
-    seed: u64,
+    pub seed: u64,
     /// Kinect only: lose pixels the projector cannot light (shadows beside depth edges), as a
     /// real Kinect does; Augmented ICL-NUIM's frames have none.
     #[arg(long)]
-    shadows: bool,
+    pub shadows: bool,
+}
+
+impl NoiseArgs {
+    /// The noise `--model` names: `kinect` (with projector shadows if asked) or a noise.toml.
+    pub fn noise(&self) -> Result<DepthNoise> {
+        if self.model == "kinect" {
+            return Ok(DepthNoise::StructuredLight(StructuredLight {
+                shadows: self.shadows,
+                ..StructuredLight::kinect()
+            }));
+        }
+        if self.shadows {
+            bail!("--shadows is a setting of --model kinect, not of a noise.toml model");
+        }
+        let path = PathBuf::from(&self.model);
+        if !path.is_file() {
+            bail!("--model {}: neither `kinect` nor an existing noise.toml file", self.model);
+        }
+        Ok(DepthNoise::Model(NoiseModel::load(&path)?))
+    }
+
+    /// Writes `clean` made noisy to `out` (which must not exist), with a progress bar.
+    pub fn write(&self, clean: &Dataset, out: &Path) -> Result<NoisySummary> {
+        let noise = self.noise()?;
+        let bar = crate::progress::bar(clean.len() as u64, "add-noise");
+        let summary = add_noise(clean, out, &noise, self.seed, |done| bar.set_position(done as u64))
+            .with_context(|| format!("adding noise to {}", clean.root().display()))?;
+        bar.finish_and_clear();
+        Ok(summary)
+    }
+}
+
+/// One line on `summary`'s noise: the frames' mean statistics against their clean depth.
+pub fn describe(summary: &NoisySummary) -> String {
+    let stats: Vec<_> = summary.statistics.iter().flatten().collect();
+    if stats.is_empty() {
+        return "no pixel valid in both noisy and clean depth".into();
+    }
+    let mean = |f: &dyn Fn(&NoiseStatistics) -> f64| stats.iter().map(|s| f(s)).sum::<f64>() / stats.len() as f64;
+    format!(
+        "noisy - clean, mean over {} frames: median {:+.1} mm, MAD {:.1} mm, 95th percentile |e| {:.1} mm, \
+         {:.1}% of valid pixels lost, {:.0} depth levels per frame",
+        stats.len(),
+        1e3 * mean(&|s| s.median),
+        1e3 * mean(&|s| s.mad),
+        1e3 * mean(&|s| s.p95_abs),
+        100.0 * mean(&|s| s.lost),
+        mean(&|s| s.levels as f64)
+    )
 }
 
 pub fn add(a: AddArgs) -> Result<()> {
-    let noise = if a.model == "kinect" {
-        DepthNoise::StructuredLight(StructuredLight { shadows: a.shadows, ..StructuredLight::kinect() })
-    } else {
-        if a.shadows {
-            bail!("--shadows is a setting of --model kinect, not of a noise.toml model");
-        }
-        let path = PathBuf::from(&a.model);
-        if !path.is_file() {
-            bail!("--model {}: neither `kinect` nor an existing noise.toml file", a.model);
-        }
-        DepthNoise::Model(NoiseModel::load(&path)?)
-    };
     let dataset = Dataset::open(&a.dataset)?;
     if dataset.truth_depth(0)?.is_some() {
         tracing::warn!(
@@ -98,25 +142,8 @@ pub fn add(a: AddArgs) -> Result<()> {
             a.dataset.display()
         );
     }
-    let bar = crate::progress::bar(dataset.len() as u64, "add-noise");
-    let summary = add_noise(&dataset, &a.output, &noise, a.seed, |done| bar.set_position(done as u64))
-        .with_context(|| format!("adding noise to {}", a.dataset.display()))?;
-    bar.finish_and_clear();
-    let stats: Vec<_> = summary.statistics.iter().flatten().collect();
+    let summary = a.noise.write(&dataset, &a.output)?;
     println!("{}: {} frames", a.output.display(), summary.frames);
-    if !stats.is_empty() {
-        let mean = |f: &dyn Fn(&mrfmap::source::NoiseStatistics) -> f64| {
-            stats.iter().map(|s| f(s)).sum::<f64>() / stats.len() as f64
-        };
-        println!(
-            "noisy - clean, mean over frames: median {:+.1} mm, MAD {:.1} mm, 95th percentile |e| {:.1} mm, \
-             {:.1}% of valid pixels lost, {:.0} depth levels per frame",
-            1e3 * mean(&|s| s.median),
-            1e3 * mean(&|s| s.mad),
-            1e3 * mean(&|s| s.p95_abs),
-            100.0 * mean(&|s| s.lost),
-            mean(&|s| s.levels as f64)
-        );
-    }
+    println!("{}", describe(&summary));
     Ok(())
 }

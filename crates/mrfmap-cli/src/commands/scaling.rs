@@ -17,7 +17,7 @@ use mrfmap::inference::{
     new_engine,
 };
 use mrfmap::outputs::pictures::write_text;
-use mrfmap::outputs::{Canvas, PlotArea, Rgb};
+use mrfmap::outputs::{Rgb, Series, line_plot};
 use mrfmap::source::{Dataset, Scene};
 
 use super::bench::BASE_SWEEPS;
@@ -107,28 +107,9 @@ fn subsample(frame: &Frame, stride: u32) -> Result<Frame> {
     Ok(Frame { depth, camera, noise, ..frame.clone() })
 }
 
-/// One line of a plot: label, colour, points.
-type Series = (String, Rgb, Vec<(f64, f64)>);
-
-/// A line plot of `series` on a log10 y axis.
+/// A line plot of `series` on a log10 y axis, saved to `path`.
 fn plot(path: &std::path::Path, title: &str, x_label: &str, y_label: &str, series: &[Series]) -> Result<()> {
-    let pts = series.iter().flat_map(|s| s.2.iter().copied()).filter(|p| p.1 > 0.0 && p.1.is_finite());
-    let (mut x0, mut x1, mut y0, mut y1) = (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
-    for (x, y) in pts {
-        (x0, x1, y0, y1) = (x0.min(x), x1.max(x), y0.min(y.log10()), y1.max(y.log10()));
-    }
-    let mut c = Canvas::new(720, 480);
-    let area = PlotArea::new(&mut c, (0, 0, 720, 480), (x0, x1), (y0.floor(), y1.ceil()), x_label, y_label, title);
-    for (row, (label, colour, points)) in series.iter().enumerate() {
-        let logs: Vec<(f64, f64)> = points.iter().filter(|p| p.1 > 0.0).map(|&(x, y)| (x, y.log10())).collect();
-        area.polyline(&mut c, &logs, *colour);
-        for &(x, y) in &logs {
-            let (px, py) = area.to_pixel(x, y);
-            c.fill(px as i64 - 3, py as i64 - 3, px as i64 + 4, py as i64 + 4, *colour);
-        }
-        area.legend(&mut c, row, label, *colour);
-    }
-    c.save(path)?;
+    line_plot(title, x_label, y_label, series, true).save(path)?;
     Ok(())
 }
 

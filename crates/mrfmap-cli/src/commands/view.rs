@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
 use mrfmap::map::Map;
-use mrfmap::outputs::{View, render_grid2d, render_map, slice_map};
+use mrfmap::outputs::{Up, View, render_grid2d, render_map, slice_map};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -31,6 +31,10 @@ pub struct Args {
     /// Draw voxels with occupancy above this.
     #[arg(long, default_value_t = 0.5, value_parser = super::threshold)]
     threshold: f32,
+    /// The world direction drawn up and coloured as height: +z (ROS), or +y for worlds such as
+    /// ICL-NUIM, 7-Scenes and Redwood whose gravity is along -y; -y, +x, -x, -z too.
+    #[arg(long, default_value = "+z", allow_hyphen_values = true, value_parser = |s: &str| s.parse::<Up>().map_err(|e| e.to_string()))]
+    up: Up,
     /// Instead of the 3D picture, the occupancy slice at AXIS=VALUE (e.g. z=0.5).
     #[arg(long, allow_hyphen_values = true)]
     slice: Option<String>,
@@ -71,7 +75,7 @@ pub fn run(a: Args) -> Result<()> {
         let value: f64 = value.trim().parse().with_context(|| format!("--slice {slice:?}: bad value"))?;
         slice_map(&map, axis, value)?
     } else {
-        let mut view = View::overview(&map).expect("map is not empty");
+        let mut view = View::overview(&map, a.up).expect("map is not empty");
         if let Some(e) = &a.eye {
             view.eye = triple("eye", e)?;
         }

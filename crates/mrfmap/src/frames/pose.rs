@@ -40,6 +40,37 @@ pub fn pose_to_tum(pose: &Pose) -> [f64; 7] {
     [t.x, t.y, t.z, q.i, q.j, q.k, q.w]
 }
 
+/// Whether `pose` has moved more than `translation` metres or turned more than `rotation`
+/// radians (the angle of the relative rotation) from `reference`.
+pub fn moved_beyond(reference: &Pose, pose: &Pose, translation: f64, rotation: f64) -> bool {
+    let d = reference.inverse() * pose;
+    d.translation.vector.norm() > translation || d.rotation.angle() > rotation
+}
+
+/// The MRFMap paper's keyframe heuristic (its sec. V-B2): the first pose, then every pose that
+/// [`moved_beyond`] the thresholds from the *last* keyframe. Returns the keyframes' indices.
+///
+/// ```
+/// use mrfmap::frames::{Pose, keyframes_by_motion};
+/// let poses: Vec<Pose> = (0..10).map(|i| Pose::translation(0.04 * i as f64, 0.0, 0.0)).collect();
+/// assert_eq!(keyframes_by_motion(&poses, 0.1, 0.1), vec![0, 3, 6, 9]);
+/// ```
+pub fn keyframes_by_motion<'a>(
+    poses: impl IntoIterator<Item = &'a Pose>,
+    translation: f64,
+    rotation: f64,
+) -> Vec<usize> {
+    let mut keyframes = Vec::new();
+    let mut last: Option<&Pose> = None;
+    for (i, pose) in poses.into_iter().enumerate() {
+        if last.is_none_or(|l| moved_beyond(l, pose, translation, rotation)) {
+            keyframes.push(i);
+            last = Some(pose);
+        }
+    }
+    keyframes
+}
+
 /// A camera at `eye` looking at `target`, world up `+z` (the scene-file convention):
 /// `z_cam = normalize(target - eye)`, `x_cam = normalize(z_cam x up)`, `y_cam = z_cam x x_cam`.
 ///
@@ -63,6 +94,21 @@ pub fn look_at(eye: Vector3<f64>, target: Vector3<f64>) -> Result<Pose, String> 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn keyframes_follow_the_last_keyframe_in_translation_and_rotation() {
+        // Turning in place by 0.04 rad a frame, then sliding 0.04 m a frame.
+        let mut poses: Vec<Pose> = (0..8).map(|i| Pose::rotation(Vector3::z() * (0.04 * i as f64))).collect();
+        let turned = poses[7];
+        poses.extend((1..8).map(|i| Pose::translation(0.04 * i as f64, 0.0, 0.0) * turned));
+        // 0.1 rad: frames 0, 3, 6; then more than 0.1 m from the last keyframe: frame 10 (0.12 m
+        // from frame 6's place, which frame 7 shares) and 13.
+        assert_eq!(keyframes_by_motion(&poses, 0.1, 0.1), vec![0, 3, 6, 10, 13]);
+        // Relative to every keyframe so far instead, a path that comes back is not new.
+        let back: Vec<Pose> = [0.0, 0.3, 0.05].iter().map(|&x| Pose::translation(x, 0.0, 0.0)).collect();
+        assert_eq!(keyframes_by_motion(&back, 0.1, 0.1), vec![0, 1, 2]);
+        assert!(!moved_beyond(&back[0], &back[2], 0.1, 0.1));
+    }
 
     #[test]
     fn tum_round_trip() {

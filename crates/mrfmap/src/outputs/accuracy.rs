@@ -150,6 +150,24 @@ pub struct RayVerdict {
     pub range: f64,
 }
 
+/// Where a ray's walk ended, before any tolerance is applied.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Walked {
+    /// The ray crossed no mapped voxel.
+    Unmapped,
+    /// Visibility stayed at or above the floor; `beyond_map`: the held-out depth lies past the
+    /// last mapped voxel.
+    Unstopped { beyond_map: bool },
+    /// The range of the most likely generating surface.
+    Peak(f64),
+}
+
+impl Walked {
+    fn peak(self) -> Option<f64> {
+        if let Walked::Peak(s) = self { Some(s) } else { None }
+    }
+}
+
 /// What the walk needs to know about a brick without visiting its voxels.
 #[derive(Clone, Copy, Debug)]
 struct BrickSummary {
@@ -218,11 +236,16 @@ impl<'a> Scorer<'a> {
         dir: [f64; 3],
         (r_d, cz): (f64, f64),
         pixel: (u32, u32),
-        mut profile: impl FnMut(ProfileStep),
+        profile: impl FnMut(ProfileStep),
     ) -> RayVerdict {
-        let invalid = RayVerdict { class: PixelClass::Invalid, peak: None, range: r_d };
+        let walked = self.walk(origin, dir, r_d, profile);
+        RayVerdict { class: self.judge(walked, (r_d, cz), pixel, self.noise), peak: walked.peak(), range: r_d }
+    }
+
+    /// Walks the ray (see [`Scorer::classify_ray`]) up to where its verdict is settled.
+    fn walk(&self, origin: [f64; 3], dir: [f64; 3], r_d: f64, mut profile: impl FnMut(ProfileStep)) -> Walked {
         let Some((s0, s1)) = self.bounds.and_then(|b| b.clip(origin, dir, 0.0, f64::INFINITY)) else {
-            return invalid;
+            return Walked::Unmapped;
         };
         let r = self.map.resolution();
         let mut vis = 1.0f64;
@@ -279,59 +302,93 @@ impl<'a> Scorer<'a> {
             });
             if settled(vis, best.0) { ControlFlow::Break(()) } else { ControlFlow::Continue(()) }
         });
-        let Some(last_mapped) = last_mapped else { return invalid };
+        let Some(last_mapped) = last_mapped else { return Walked::Unmapped };
         if vis >= VISIBILITY_FLOOR {
             // Visibility only falls along a ray: it never dropped below the floor.
-            let class = if last_mapped >= r_d {
-                PixelClass::Inaccurate
-            } else if self.params.beyond_map_is_accurate {
-                PixelClass::Accurate
-            } else {
-                PixelClass::Invalid
-            };
-            return RayVerdict { class, peak: None, range: r_d };
+            return Walked::Unstopped { beyond_map: last_mapped < r_d };
         }
-        let miss = match self.params.peak {
-            PeakRule::Entry => (best.1 - r_d).abs(),
-            PeakRule::Exit => (best.1 - r_d).abs() * cz,
+        Walked::Peak(best.1)
+    }
+
+    /// The class of a walked ray with held-out range `r_d` (`cz` converts range to z-depth),
+    /// judged against `k` times `noise`'s std at the peak, or `k sigma` without a model.
+    fn judge(
+        &self,
+        walked: Walked,
+        (r_d, cz): (f64, f64),
+        pixel: (u32, u32),
+        noise: Option<&NoiseModel>,
+    ) -> PixelClass {
+        let peak = match walked {
+            Walked::Unmapped => return PixelClass::Invalid,
+            Walked::Unstopped { beyond_map: false } => return PixelClass::Inaccurate,
+            Walked::Unstopped { beyond_map: true } if self.params.beyond_map_is_accurate => {
+                return PixelClass::Accurate;
+            }
+            Walked::Unstopped { beyond_map: true } => return PixelClass::Invalid,
+            Walked::Peak(s) => s,
         };
-        let sigma = match self.noise {
-            Some(noise) => noise.bias_std(pixel.0, pixel.1, best.1 * cz).1,
+        let miss = match self.params.peak {
+            PeakRule::Entry => (peak - r_d).abs(),
+            PeakRule::Exit => (peak - r_d).abs() * cz,
+        };
+        let sigma = match noise {
+            Some(noise) => noise.bias_std(pixel.0, pixel.1, peak * cz).1,
             None => self.params.sigma,
         };
-        let accurate = miss <= self.params.k * sigma;
-        RayVerdict {
-            class: if accurate { PixelClass::Accurate } else { PixelClass::Inaccurate },
-            peak: Some(best.1),
-            range: r_d,
-        }
+        if miss <= self.params.k * sigma { PixelClass::Accurate } else { PixelClass::Inaccurate }
     }
 
     /// Scores the held-out z-depth image `depth` seen from `pose` (parallel by row).
     pub fn score_view(&self, camera: &Camera, pose: &Pose, depth: &DepthImage) -> ViewScore {
+        self.score_view_each(camera, pose, depth, &[self.noise]).pop().expect("one tolerance")
+    }
+
+    /// [`Scorer::score_view`] under several tolerances at the cost of one: per entry of
+    /// `tolerances`, `k` times that model's std at the peak, or `k sigma` for `None`. Each ray
+    /// is walked once; only the verdicts differ.
+    pub fn score_view_each(
+        &self,
+        camera: &Camera,
+        pose: &Pose,
+        depth: &DepthImage,
+        tolerances: &[Option<&NoiseModel>],
+    ) -> Vec<ViewScore> {
         let (w, h) = (depth.width(), depth.height());
         let (rotation, origin) = pose_parts(pose);
-        let classes: Vec<PixelClass> = (0..h)
+        let rays: Vec<Option<(Walked, (f64, f64))>> = (0..h)
             .into_par_iter()
             .flat_map_iter(|v| {
-                (0..w).map(move |u| match depth.get(u, v) {
-                    None => PixelClass::NoDepth,
-                    Some(z) => {
-                        let (d, norm) = pixel_direction(camera, &rotation, u, v);
-                        self.classify_ray(origin, d, (z as f64 * norm, 1.0 / norm), (u, v), |_| {}).class
-                    }
+                (0..w).map(move |u| {
+                    let z = depth.get(u, v)?;
+                    let (d, norm) = pixel_direction(camera, &rotation, u, v);
+                    let r_d = z as f64 * norm;
+                    Some((self.walk(origin, d, r_d, |_| {}), (r_d, 1.0 / norm)))
                 })
             })
             .collect();
-        let count = |c| classes.iter().filter(|x| **x == c).count();
-        ViewScore {
-            width: w,
-            height: h,
-            accurate: count(PixelClass::Accurate),
-            inaccurate: count(PixelClass::Inaccurate),
-            invalid: count(PixelClass::Invalid),
-            classes,
-        }
+        tolerances
+            .iter()
+            .map(|&noise| {
+                let classes: Vec<PixelClass> = rays
+                    .iter()
+                    .enumerate()
+                    .map(|(i, ray)| match *ray {
+                        None => PixelClass::NoDepth,
+                        Some((walked, range)) => self.judge(walked, range, ((i as u32) % w, (i as u32) / w), noise),
+                    })
+                    .collect();
+                let count = |c| classes.iter().filter(|x| **x == c).count();
+                ViewScore {
+                    width: w,
+                    height: h,
+                    accurate: count(PixelClass::Accurate),
+                    inaccurate: count(PixelClass::Inaccurate),
+                    invalid: count(PixelClass::Invalid),
+                    classes,
+                }
+            })
+            .collect()
     }
 
     /// The profile of pixel `(u, v)`'s ray (for the per-ray plot) and its verdict; `None`
@@ -497,6 +554,61 @@ mod tests {
         assert_eq!(verdict(20, 2.18, (0, 0), false), PixelClass::Inaccurate, "constant 0.05 m");
         assert_eq!(verdict(20, 2.18, (15, 0), true), PixelClass::Inaccurate, "the 0.01 m patch");
         assert_eq!(verdict(10, 1.18, (0, 0), true), PixelClass::Inaccurate, "std 0.055 at 1.1 m");
+    }
+
+    /// One walk, several tolerances: each score equals a scorer of that tolerance's own.
+    #[test]
+    fn scoring_under_several_tolerances_equals_scoring_under_each() {
+        use crate::frames::{Camera, Poly, look_at};
+        let mut rng = Rng::new(5);
+        let mut map = Map::new("mrf", 0.1).unwrap();
+        for _ in 0..3000 {
+            let key =
+                VoxelKey([rng.range(10.0, 30.0) as i32, rng.range(-8.0, 8.0) as i32, rng.range(-8.0, 8.0) as i32]);
+            map.voxels.insert(key, MapVoxel { occupancy: rng.uniform() as f32, variance: 0.0 });
+        }
+        let camera = Camera::new(20.0, 20.0, 15.5, 11.5, 32, 24, 1000.0).unwrap();
+        let pose = look_at([0.0, 0.0, 0.0].into(), [1.0, 0.05, 0.02].into()).unwrap();
+        let mut depth = DepthImage::new(32, 24);
+        for v in 0..24 {
+            for u in 0..32 {
+                if rng.uniform() < 0.9 {
+                    depth.set(u, v, rng.range(1.0, 3.5) as f32);
+                }
+            }
+        }
+        let noise = NoiseModel::aggregate(Poly::default(), Poly([0.0, 0.0, 0.02]));
+        for beyond in [false, true] {
+            let params = AccuracyParams {
+                peak: PeakRule::Exit,
+                beyond_map_is_accurate: beyond,
+                ..AccuracyParams::for_map(&map)
+            };
+            let scorer = Scorer::new(&map, params);
+            let both = scorer.score_view_each(&camera, &pose, &depth, &[None, Some(&noise)]);
+            // Pixel by pixel, each tolerance on its own scorer.
+            let (rotation, origin) = pose_parts(&pose);
+            for (scorer, score) in [
+                (Scorer::new(&map, params), &both[0]),
+                (Scorer::new(&map, params).with_model_tolerance(&noise), &both[1]),
+            ] {
+                for (i, class) in score.classes.iter().enumerate() {
+                    let (u, v) = (i as u32 % 32, i as u32 / 32);
+                    let expected = depth.get(u, v).map_or(PixelClass::NoDepth, |z| {
+                        let (d, norm) = pixel_direction(&camera, &rotation, u, v);
+                        scorer.classify_ray(origin, d, (z as f64 * norm, 1.0 / norm), (u, v), |_| {}).class
+                    });
+                    assert_eq!(*class, expected, "pixel {u}, {v}");
+                }
+            }
+            let (constant, modelled) = (&both[0], &both[1]);
+            assert_eq!(
+                modelled,
+                &Scorer::new(&map, params).with_model_tolerance(&noise).score_view(&camera, &pose, &depth)
+            );
+            assert_ne!(constant.classes, modelled.classes, "the tolerances must differ somewhere for this to test");
+            assert!(constant.accurate > 0 && constant.inaccurate > 0 && constant.invalid > 0, "{constant:?}");
+        }
     }
 
     #[test]

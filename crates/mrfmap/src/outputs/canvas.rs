@@ -330,6 +330,50 @@ fn format_tick(t: f64, step: f64) -> String {
     format!("{t:.decimals$}")
 }
 
+/// One line of a [`line_plot`]: label, colour, points `(x, y)`.
+pub type Series = (String, Rgb, Vec<(f64, f64)>);
+
+/// A 720x480 line plot of `series` with a dot at every point; with `log_y` the y axis is
+/// log10 of the values (points at or below 0 are left out).
+///
+/// ```
+/// use mrfmap::outputs::line_plot;
+/// let series = vec![("MAE".to_string(), [200, 0, 0], vec![(0.0, 0.3), (10.0, 0.1)])];
+/// let c = line_plot("MAE OVER TIME", "FRAMES", "MAE", &series, false);
+/// assert_eq!((c.width(), c.height()), (720, 480));
+/// ```
+pub fn line_plot(title: &str, x_label: &str, y_label: &str, series: &[Series], log_y: bool) -> Canvas {
+    let y_of = |y: f64| if log_y { (y > 0.0).then(|| y.log10()) } else { Some(y) };
+    let shown: Vec<Vec<(f64, f64)>> = series
+        .iter()
+        .map(|s| {
+            s.2.iter()
+                .filter_map(|&(x, y)| Some((x, y_of(y)?)))
+                .filter(|p| p.0.is_finite() && p.1.is_finite())
+                .collect()
+        })
+        .collect();
+    let (mut x0, mut x1, mut y0, mut y1) = (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
+    for &(x, y) in shown.iter().flatten() {
+        (x0, x1, y0, y1) = (x0.min(x), x1.max(x), y0.min(y), y1.max(y));
+    }
+    if !x0.is_finite() {
+        (x0, x1, y0, y1) = (0.0, 1.0, 0.0, 1.0);
+    }
+    let y_range = if log_y { (y0.floor(), y1.ceil()) } else { (y0, y1) };
+    let mut c = Canvas::new(720, 480);
+    let area = PlotArea::new(&mut c, (0, 0, 720, 480), (x0, x1), y_range, x_label, y_label, title);
+    for (row, ((label, colour, _), points)) in series.iter().zip(&shown).enumerate() {
+        area.polyline(&mut c, points, *colour);
+        for &(x, y) in points {
+            let (px, py) = area.to_pixel(x, y);
+            c.fill(px as i64 - 3, py as i64 - 3, px as i64 + 4, py as i64 + 4, *colour);
+        }
+        area.legend(&mut c, row, label, *colour);
+    }
+    c
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

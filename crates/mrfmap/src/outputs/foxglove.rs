@@ -13,7 +13,7 @@ use std::path::Path;
 
 use serde_json::{Value, json};
 
-use super::Colouring;
+use super::{Colouring, Up};
 use crate::atomic_file::write_atomic;
 use crate::error::{Error, Result};
 use crate::map::Map;
@@ -91,8 +91,10 @@ fn scene(map: &Map, options: &SceneOptions) -> (Value, SceneSummary) {
             .map(|(slot, v)| {
                 let key = bk.voxel(slot);
                 let c = key.center(r);
-                let [red, green, blue] =
-                    options.colouring.colour(map, key, v, z_range, options.threshold).map(|x| x as f64 / 255.0);
+                let [red, green, blue] = options
+                    .colouring
+                    .colour(map, key, v, (Up::Z, z_range), options.threshold)
+                    .map(|x| x as f64 / 255.0);
                 json!({
                     "pose": {"position": {"x": c[0], "y": c[1], "z": c[2]},
                              "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}},

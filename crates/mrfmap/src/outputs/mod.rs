@@ -29,7 +29,7 @@ mod truth;
 pub use accuracy::{
     AccuracyParams, PeakRule, PixelClass, ProfileStep, RayVerdict, Scorer, VISIBILITY_FLOOR, ViewScore, score_view,
 };
-pub use canvas::{Canvas, PlotArea, Rgb, nice_step};
+pub use canvas::{Canvas, PlotArea, Rgb, Series, line_plot, nice_step};
 #[cfg(feature = "mcap")]
 pub use foxglove::{SCENE_TOPIC, SceneOptions, SceneSummary, write_scene_mcap};
 pub use grid2d::{FREE_THRESH, Grid2dFiles, MapServerGrid, OCCUPIED_THRESH, read_map_server, write_map_server};
@@ -42,7 +42,7 @@ pub use query::{
     box_voxel_count, for_each_in_box, query_box, query_point, query_points, query_polyline, query_segment,
     query_segments,
 };
-pub use render::{Colouring, View, render_grid2d, render_map, slice_map};
+pub use render::{Colouring, Up, View, render_grid2d, render_map, slice_map};
 pub use truth::{
     TruthMetrics, VoxelTruth, grid_world_truths, mean_sigma, metrics_of, pearson, roc_auc, true_occupancy,
     truth_metrics, voxel_truths,

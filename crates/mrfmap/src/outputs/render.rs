@@ -1,7 +1,8 @@
 //! Looking at maps without a viewer: a ray-cast picture of the occupied voxels from any
 //! viewpoint ([`render_map`]), coloured by height, sigma or occupancy, and axis-aligned slices
 //! of occupancy ([`slice_map`]), and 2D grids with their sigma ([`render_grid2d`]). All return
-//! a [`Canvas`] to save as PNG.
+//! a [`Canvas`] to save as PNG. Pictures stand the world on its [`Up`] axis (`+z` unless told;
+//! ICL-NUIM, 7-Scenes and Redwood worlds have `+y` up).
 
 use std::ops::ControlFlow;
 
@@ -39,13 +40,77 @@ impl std::str::FromStr for Colouring {
     }
 }
 
+/// The world direction that is up in a picture: `+x`, `-x`, `+y`, `-y`, `+z` or `-z`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Up {
+    /// 0, 1, 2 for x, y, z.
+    pub axis: usize,
+    /// Up is the axis's negative direction.
+    pub negative: bool,
+}
+
+impl Up {
+    /// `+z`, the default: ROS and most robot worlds.
+    pub const Z: Up = Up { axis: 2, negative: false };
+
+    /// The unit vector pointing up.
+    pub fn vector(self) -> [f64; 3] {
+        let mut v = [0.0; 3];
+        v[self.axis] = if self.negative { -1.0 } else { 1.0 };
+        v
+    }
+
+    /// Height of world point `p`.
+    pub fn height(self, p: [f64; 3]) -> f64 {
+        if self.negative { -p[self.axis] } else { p[self.axis] }
+    }
+
+    /// The range of heights over the box `lo`..`hi`.
+    pub fn heights(self, lo: [f64; 3], hi: [f64; 3]) -> (f64, f64) {
+        let (a, b) = (self.height(lo), self.height(hi));
+        (a.min(b), a.max(b))
+    }
+}
+
+impl std::str::FromStr for Up {
+    type Err = Error;
+
+    /// `+x`, `-x`, `+y`, `-y`, `+z`, `-z` (a bare axis is its positive direction).
+    fn from_str(s: &str) -> Result<Self> {
+        let (negative, axis) = match s.trim().strip_prefix('-') {
+            Some(rest) => (true, rest),
+            None => (false, s.trim().strip_prefix('+').unwrap_or(s.trim())),
+        };
+        let axis = match axis {
+            "x" => 0,
+            "y" => 1,
+            "z" => 2,
+            _ => return Err(Error::Invalid(format!("up axis {s:?}: use +x, -x, +y, -y, +z or -z"))),
+        };
+        Ok(Up { axis, negative })
+    }
+}
+
+impl std::fmt::Display for Up {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}{}", if self.negative { '-' } else { '+' }, ["x", "y", "z"][self.axis])
+    }
+}
+
 impl Colouring {
-    /// The colour of `voxel` (at `key` in `map`); `z_range` is the height range `Height` spans,
-    /// `threshold` the lowest occupancy drawn (where `Occupancy` starts).
-    pub fn colour(self, map: &Map, key: VoxelKey, voxel: &MapVoxel, z_range: (f64, f64), threshold: f32) -> Rgb {
+    /// The colour of `voxel` (at `key` in `map`); `heights` is the range of heights along `up`
+    /// that `Height` spans, `threshold` the lowest occupancy drawn (where `Occupancy` starts).
+    pub fn colour(
+        self,
+        map: &Map,
+        key: VoxelKey,
+        voxel: &MapVoxel,
+        (up, heights): (Up, (f64, f64)),
+        threshold: f32,
+    ) -> Rgb {
         let r = map.resolution();
         match self {
-            Colouring::Height => viridis((key.center(r)[2] - z_range.0) / (z_range.1 - z_range.0).max(r)),
+            Colouring::Height => viridis((up.height(key.center(r)) - heights.0) / (heights.1 - heights.0).max(r)),
             Colouring::Sigma => viridis(mean_sigma(map, voxel).1 / 0.5),
             Colouring::Occupancy => {
                 let t = threshold.clamp(0.0, 0.999) as f64;
@@ -72,16 +137,22 @@ pub struct View {
     pub threshold: f32,
     /// Colour scheme.
     pub colouring: Colouring,
+    /// The world direction drawn up (and that `Height` colours along).
+    pub up: Up,
 }
 
 impl View {
-    /// A view of the whole map from above one corner (a third of the way up), 1024x768,
-    /// 60 degrees, occupancy above 0.5, coloured by height. `None` for an empty map.
-    pub fn overview(map: &Map) -> Option<View> {
+    /// A view of the whole map from above one corner (a third of the way up along `up`),
+    /// 1024x768, 60 degrees, occupancy above 0.5, coloured by height. `None` for an empty map.
+    pub fn overview(map: &Map, up: Up) -> Option<View> {
         let (lo, hi) = map.bounds()?;
         let c = [0, 1, 2].map(|a| 0.5 * (lo[a] + hi[a]));
         let size = (0..3).map(|a| hi[a] - lo[a]).fold(0.0, f64::max);
-        let eye = [c[0] - 0.9 * size, c[1] - 1.2 * size, c[2] + 0.9 * size];
+        // For +z: back 0.9 along x, 1.2 along y, 0.9 up; the two level axes follow up's cyclically.
+        let mut eye = c;
+        eye[(up.axis + 1) % 3] -= 0.9 * size;
+        eye[(up.axis + 2) % 3] -= 1.2 * size;
+        eye[up.axis] += 0.9 * size * up.vector()[up.axis];
         Some(View {
             eye,
             target: c,
@@ -90,6 +161,7 @@ impl View {
             fov_degrees: 60.0,
             threshold: 0.5,
             colouring: Colouring::Height,
+            up,
         })
     }
 }
@@ -100,10 +172,10 @@ impl View {
 ///
 /// ```
 /// use mrfmap::map::{Map, MapVoxel, VoxelKey};
-/// use mrfmap::outputs::{View, render_map};
+/// use mrfmap::outputs::{Up, View, render_map};
 /// let mut map = Map::new("logodds", 0.1).unwrap();
 /// map.voxels.insert(VoxelKey([0, 0, 0]), MapVoxel { occupancy: 0.9, variance: 0.0 });
-/// let view = View { eye: [0.05, 0.05, 3.0], target: [0.05, 0.05, 0.0], width: 64, height: 48, ..View::overview(&map).unwrap() };
+/// let view = View { eye: [0.05, 0.05, 3.0], target: [0.05, 0.05, 0.0], width: 64, height: 48, ..View::overview(&map, Up::Z).unwrap() };
 /// let picture = render_map(&map, &view).unwrap();
 /// assert_ne!(picture.pixel(32, 24), [255, 255, 255]); // the voxel, seen from above
 /// assert_eq!(picture.pixel(0, 0), [255, 255, 255]);
@@ -119,7 +191,9 @@ pub fn render_map(map: &Map, view: &View) -> Result<Canvas> {
         (n > 1e-12 && n.is_finite()).then(|| a.map(|x| x / n))
     };
     let forward = norm(sub(v.target, v.eye)).ok_or_else(|| Error::Invalid("eye and target coincide".into()))?;
-    let right = norm(cross(forward, [0.0, 0.0, 1.0])).or_else(|| norm(cross(forward, [0.0, 1.0, 0.0]))).expect("unit");
+    // Looking straight along up has no "right": any level direction will do.
+    let level = Up { axis: (v.up.axis + 1) % 3, negative: false };
+    let right = norm(cross(forward, v.up.vector())).or_else(|| norm(cross(forward, level.vector()))).expect("unit");
     let up = cross(right, forward);
     if !(v.width > 0 && v.height > 0 && v.fov_degrees > 0.0 && v.fov_degrees < 179.0) {
         return Err(Error::Invalid(format!(
@@ -131,9 +205,9 @@ pub fn render_map(map: &Map, view: &View) -> Result<Canvas> {
     let focal = 0.5 * v.width as f64 / (0.5 * v.fov_degrees.to_radians()).tan();
     let r = map.resolution();
     let bounds = Aabb::new(lo, hi)?;
-    let (zmin, zmax) = (lo[2], hi[2]);
+    let (zmin, zmax) = v.up.heights(lo, hi);
     let colour_of = |key: VoxelKey| -> Rgb {
-        v.colouring.colour(map, key, map.voxels.get(key).expect("hit voxels exist"), (zmin, zmax), v.threshold)
+        v.colouring.colour(map, key, map.voxels.get(key).expect("hit voxels exist"), (v.up, (zmin, zmax)), v.threshold)
     };
     let w = v.width as usize;
     let mut rgb = vec![255u8; w * v.height as usize * 3];
@@ -169,7 +243,7 @@ pub fn render_map(map: &Map, view: &View) -> Result<Canvas> {
     });
     let mut canvas = Canvas::from_rgb(v.width, v.height, rgb);
     let label = match v.colouring {
-        Colouring::Height => format!("COLOUR: HEIGHT {zmin:.2} TO {zmax:.2} M"),
+        Colouring::Height => format!("COLOUR: HEIGHT ({}) {zmin:.2} TO {zmax:.2} M", v.up).to_uppercase(),
         Colouring::Sigma => "COLOUR: SIGMA 0 TO 0.5".to_string(),
         Colouring::Occupancy => format!("COLOUR: OCCUPANCY {} TO 1", v.threshold),
     };
@@ -276,4 +350,62 @@ pub fn render_grid2d(grid: &Grid2d, max_side: u32) -> Canvas {
         }
     }
     c
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The extent (columns, rows) of what a picture draws, label rows left out.
+    fn drawn(c: &Canvas) -> (u32, u32) {
+        let (mut x0, mut x1, mut y0, mut y1) = (u32::MAX, 0, u32::MAX, 0);
+        for y in 30..c.height() {
+            for x in 0..c.width() {
+                if c.pixel(x, y) != [255, 255, 255] {
+                    (x0, x1, y0, y1) = (x0.min(x), x1.max(x), y0.min(y), y1.max(y));
+                }
+            }
+        }
+        (x1.saturating_sub(x0), y1.saturating_sub(y0))
+    }
+
+    #[test]
+    fn a_pole_along_the_up_axis_stands_upright() {
+        // A pole along y, on a small base so the map is not one voxel wide.
+        let mut map = Map::new("logodds", 0.1).unwrap();
+        for y in 0..20 {
+            map.voxels.insert(VoxelKey([0, y, 0]), MapVoxel { occupancy: 0.9, variance: 0.0 });
+        }
+        for (x, z) in [(-2, -2), (2, 2), (-2, 2), (2, -2)] {
+            map.voxels.insert(VoxelKey([x, 0, z]), MapVoxel { occupancy: 0.9, variance: 0.0 });
+        }
+        let up: Up = "+y".parse().unwrap();
+        let (w, h) =
+            drawn(&render_map(&map, &View { width: 200, height: 200, ..View::overview(&map, up).unwrap() }).unwrap());
+        assert!(h > 2 * w, "+y up: the pole is tall ({w}x{h})");
+        // Upside down it still stands, and with +z up the pole lies across the picture.
+        let down: Up = "-y".parse().unwrap();
+        let (w, h) =
+            drawn(&render_map(&map, &View { width: 200, height: 200, ..View::overview(&map, down).unwrap() }).unwrap());
+        assert!(h > 2 * w, "-y up ({w}x{h})");
+        let (w, h) = drawn(
+            &render_map(&map, &View { width: 200, height: 200, ..View::overview(&map, Up::Z).unwrap() }).unwrap(),
+        );
+        assert!(h < 2 * w, "+z up ({w}x{h})");
+        // Heights along up: the pole's top is the highest voxel.
+        assert_eq!(up.heights([0.0, -1.0, 0.0], [1.0, 2.0, 3.0]), (-1.0, 2.0));
+        assert_eq!(down.heights([0.0, -1.0, 0.0], [1.0, 2.0, 3.0]), (-2.0, 1.0));
+    }
+
+    #[test]
+    fn up_axes_parse_and_print() {
+        for (text, axis, negative) in [("+x", 0, false), ("-y", 1, true), ("z", 2, false), (" +z ", 2, false)] {
+            let up: Up = text.parse().unwrap();
+            assert_eq!((up.axis, up.negative), (axis, negative), "{text}");
+            assert_eq!(up.to_string().parse::<Up>().unwrap(), up);
+        }
+        for bad in ["", "+w", "y+", "--y", "+"] {
+            assert!(bad.parse::<Up>().is_err(), "{bad:?}");
+        }
+    }
 }

@@ -19,9 +19,9 @@ use mrfmap::frames::RangeScan;
 use mrfmap::inference::{Engine, LogOddsEngine, LogOddsParams, SensorModel};
 use mrfmap::map::Map;
 use mrfmap::outputs::pictures::write_text;
-use mrfmap::outputs::{VoxelTruth, pearson, render_grid2d, roc_auc};
+use mrfmap::outputs::render_grid2d;
 
-use super::{Method, sweep};
+use super::{Method, Scores, score, sweep};
 use crate::commands::build::LaserOptions;
 
 #[derive(clap::Args)]
@@ -87,61 +87,6 @@ fn reference(scans: &[RangeScan], resolution: f64) -> Result<Map> {
 fn entropy(map: &Map) -> f64 {
     let h = |p: f64| if p <= 0.0 || p >= 1.0 { 0.0 } else { -(p * p.log2() + (1.0 - p) * (1.0 - p).log2()) };
     map.voxels.iter().map(|(_, v)| h(v.occupancy as f64)).sum::<f64>() / map.voxels.len().max(1) as f64
-}
-
-/// Scores of one map against the reference.
-struct Scores {
-    label: String,
-    mae: f64,
-    auc: f64,
-    ic_125: f64,
-    ic_2: f64,
-    beyond_125: f64,
-    beyond_2: f64,
-    pcc: f64,
-    observed: usize,
-    seconds: f64,
-}
-
-impl Scores {
-    fn json(&self) -> serde_json::Value {
-        serde_json::json!({
-            "label": self.label, "mae": self.mae, "auc": self.auc, "ic_1.25": self.ic_125, "ic_2": self.ic_2,
-            "beyond_1.25_sigma": self.beyond_125, "beyond_2_sigma": self.beyond_2, "pcc_sigma_error": self.pcc,
-            "observed": self.observed, "seconds": self.seconds,
-        })
-    }
-}
-
-/// `map`'s cells against the reference's known cells; unobserved cells at `prior`.
-fn score(label: String, reference: &Map, map: &Map, prior: (f64, f64), seconds: f64) -> Scores {
-    let cells: Vec<VoxelTruth> = reference
-        .voxels
-        .iter()
-        .map(|(k, r)| {
-            let truth = if r.occupancy > 0.5 { 1.0 } else { 0.0 };
-            let (mean, sigma) = map.voxels.get(k).map_or(prior, |v| v.mean_sigma(map.has_variance));
-            VoxelTruth { truth, mean, sigma }
-        })
-        .collect();
-    let n = cells.len().max(1) as f64;
-    let beyond = |g: f64| cells.iter().filter(|t| t.error().abs() > g * t.sigma).count() as f64 / n;
-    let errors: Vec<f64> = cells.iter().map(|t| t.error().abs()).collect();
-    let sigmas: Vec<f64> = cells.iter().map(|t| t.sigma).collect();
-    let means: Vec<f64> = cells.iter().map(|t| t.mean).collect();
-    let labels: Vec<bool> = cells.iter().map(|t| t.truth > 0.5).collect();
-    Scores {
-        label,
-        mae: errors.iter().sum::<f64>() / n,
-        auc: roc_auc(&means, &labels),
-        ic_125: cells.iter().map(|t| t.inconsistency(1.25)).sum(),
-        ic_2: cells.iter().map(|t| t.inconsistency(2.0)).sum(),
-        beyond_125: beyond(1.25),
-        beyond_2: beyond(2.0),
-        pcc: pearson(&sigmas, &errors),
-        observed: reference.voxels.iter().filter(|(k, _)| map.voxels.get(*k).is_some()).count(),
-        seconds,
-    }
 }
 
 /// Builds `method`'s map `repeat` times; the map and the best time.

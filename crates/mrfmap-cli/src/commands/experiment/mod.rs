@@ -2,21 +2,31 @@
 //!
 //! - `crm-2d` (`crm2d.rs`): the CRM paper's simulation study on our own 2D world;
 //! - `crm-laser` (`laser.rs`): the CRM paper's real-data experiment (sec. 8.3.1) on a CARMEN
-//!   laser log.
+//!   laser log;
+//! - `mrfmap-table2` (`table2.rs`): the MRFMap paper's Table II on Augmented ICL-NUIM
+//!   livingroom1, from its noise-free depth and `add-noise`'s Kinect model;
+//! - `crm-icl` (`crm_icl.rs`): the CRM paper's ICL-NUIM experiment (sec. 8.3.2): MAE and
+//!   PCC(sigma, |e|) of CRM and log-odds over time against a reference map.
 //!
-//! Both compare CRM with log-odds under the paper's ramp inverse sensor model and its
+//! The first two compare CRM with log-odds under the paper's ramp inverse sensor model and its
 //! 48-setting sweep ([`Method`], [`sweep`]).
 
 mod crm2d;
+mod crm_icl;
 mod laser;
+mod table2;
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use anyhow::Result;
+use anyhow::{Context, Result};
+use mrfmap::source::{Dataset, NoisySummary};
+
+use crate::commands::noise::NoiseArgs;
 use mrfmap::frames::RangeScan;
 use mrfmap::inference::{CrmEngine, CrmParams, Engine, LogOddsEngine, LogOddsParams, SensorModel};
 use mrfmap::map::Map;
+use mrfmap::outputs::{VoxelTruth, pearson, roc_auc};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -33,6 +43,15 @@ enum Experiment {
     /// every beam, CRM and log-odds from a tenth of them, scored against it.
     #[command(name = "crm-laser")]
     CrmLaser(laser::Args),
+    /// The MRFMap paper's Table II: noisy depth simulated from a noise-free dataset, keyframes by
+    /// its geometric heuristic, MRF, log-odds and CRM at 0.05 / 0.02 / 0.01 m, scored on the other
+    /// frames' noise-free depth.
+    #[command(name = "mrfmap-table2")]
+    MrfmapTable2(table2::Args),
+    /// The CRM paper's ICL-NUIM experiment: a reference map from every noise-free frame, then
+    /// CRM and log-odds fed the noisy frames one by one; MAE and PCC(sigma, |e|) over time.
+    #[command(name = "crm-icl")]
+    CrmIcl(crm_icl::Args),
 }
 
 #[derive(clap::Args)]
@@ -52,6 +71,8 @@ pub fn run(a: Args) -> Result<()> {
     match a.experiment {
         Experiment::Crm2d(a) => crm2d::crm_2d(a),
         Experiment::CrmLaser(a) => laser::crm_laser(a),
+        Experiment::MrfmapTable2(a) => table2::mrfmap_table2(a),
+        Experiment::CrmIcl(a) => crm_icl::crm_icl(a),
     }
 }
 
@@ -113,4 +134,71 @@ fn sweep() -> Vec<SensorModel> {
         }
     }
     out
+}
+
+/// Scores of one map against the reference.
+struct Scores {
+    label: String,
+    mae: f64,
+    auc: f64,
+    ic_125: f64,
+    ic_2: f64,
+    beyond_125: f64,
+    beyond_2: f64,
+    pcc: f64,
+    observed: usize,
+    seconds: f64,
+}
+
+impl Scores {
+    fn json(&self) -> serde_json::Value {
+        serde_json::json!({
+            "label": self.label, "mae": self.mae, "auc": self.auc, "ic_1.25": self.ic_125, "ic_2": self.ic_2,
+            "beyond_1.25_sigma": self.beyond_125, "beyond_2_sigma": self.beyond_2, "pcc_sigma_error": self.pcc,
+            "observed": self.observed, "seconds": self.seconds,
+        })
+    }
+}
+
+/// `map`'s cells against the reference's known cells; unobserved cells at `prior`.
+fn score(label: String, reference: &Map, map: &Map, prior: (f64, f64), seconds: f64) -> Scores {
+    let cells: Vec<VoxelTruth> = reference
+        .voxels
+        .iter()
+        .map(|(k, r)| {
+            let truth = if r.occupancy > 0.5 { 1.0 } else { 0.0 };
+            let (mean, sigma) = map.voxels.get(k).map_or(prior, |v| v.mean_sigma(map.has_variance));
+            VoxelTruth { truth, mean, sigma }
+        })
+        .collect();
+    let n = cells.len().max(1) as f64;
+    let beyond = |g: f64| cells.iter().filter(|t| t.error().abs() > g * t.sigma).count() as f64 / n;
+    let errors: Vec<f64> = cells.iter().map(|t| t.error().abs()).collect();
+    let sigmas: Vec<f64> = cells.iter().map(|t| t.sigma).collect();
+    let means: Vec<f64> = cells.iter().map(|t| t.mean).collect();
+    let labels: Vec<bool> = cells.iter().map(|t| t.truth > 0.5).collect();
+    Scores {
+        label,
+        mae: errors.iter().sum::<f64>() / n,
+        auc: roc_auc(&means, &labels),
+        ic_125: cells.iter().map(|t| t.inconsistency(1.25)).sum(),
+        ic_2: cells.iter().map(|t| t.inconsistency(2.0)).sum(),
+        beyond_125: beyond(1.25),
+        beyond_2: beyond(2.0),
+        pcc: pearson(&sigmas, &errors),
+        observed: reference.voxels.iter().filter(|(k, _)| map.voxels.get(*k).is_some()).count(),
+        seconds,
+    }
+}
+
+/// `clean` made noisy by `noise` in `dir/noisy` (replaced when it exists: it is the experiment's
+/// own output), opened, with the summary of its noise.
+fn noisy_copy(clean: &Dataset, dir: &Path, noise: &NoiseArgs) -> Result<(Dataset, NoisySummary)> {
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    let noisy = dir.join("noisy");
+    if noisy.exists() {
+        std::fs::remove_dir_all(&noisy).with_context(|| format!("replacing {}", noisy.display()))?;
+    }
+    let summary = noise.write(clean, &noisy)?;
+    Ok((Dataset::open(&noisy)?, summary))
 }

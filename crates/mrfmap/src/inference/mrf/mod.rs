@@ -110,7 +110,7 @@ use tiles::{Entry, Keyframe};
 
 use super::{Engine, logit, sigmoid};
 use crate::error::{Error, Result};
-use crate::frames::{Frame, NoiseModel, Pose, default_noise_model};
+use crate::frames::{Frame, NoiseModel, Pose, default_noise_model, moved_beyond};
 use crate::map::{BrickKey, Grid, Map, MapVoxel, VoxelKey};
 use crate::rays::RayLimits;
 
@@ -291,10 +291,9 @@ impl MrfEngine {
     pub fn is_new_keyframe(&self, pose: &Pose) -> bool {
         match self.params.keyframes {
             KeyframeSelection::All => true,
-            KeyframeSelection::Auto { translation, rotation } => self.keyframes.iter().all(|k| {
-                let d = k.frame.pose.inverse() * pose;
-                d.translation.vector.norm() > translation || d.rotation.angle() > rotation
-            }),
+            KeyframeSelection::Auto { translation, rotation } => {
+                self.keyframes.iter().all(|k| moved_beyond(&k.frame.pose, pose, translation, rotation))
+            }
         }
     }
 

@@ -1097,10 +1097,25 @@ fn ros2_bags_build_the_same_map_as_the_dataset() {
     make_bag(&data, &reversed, &["--direct", "--reverse"]);
     let log = same_as_tum(&reversed, &["--fixed-frame", "map"]);
     assert!(log.contains("/camera/depth/image_rect_raw: image 2 is stamped before"), "{log}");
-    // A ROS 1 bag of the same data (through the rosbag crate and ROS 1 serialisation).
+    // A ROS 1 bag of the same data (our ROS 1 reader and ROS 1 serialisation).
     let ros1 = dir.join("ros1.bag");
     make_bag(&data, &ros1, &["--ros1"]);
     same_as_tum(&ros1, &["--fixed-frame", "map"]);
+    // Cut short anywhere (a robot that lost power): `bag info` and `build` never panic; they
+    // read what is complete and say where the file stops, or fail with a clear error.
+    let bytes = std::fs::read(&ros1).unwrap();
+    let cut = dir.join("cut.bag");
+    for at in (1..20).map(|k| k * bytes.len() / 20).chain([10, 100, 1000]) {
+        std::fs::write(&cut, &bytes[..at]).unwrap();
+        for o in [run(&["bag", "info", s(&cut)]), build(&cut, &m, &[depth[0], depth[1], "--fixed-frame", "map"])] {
+            let err = stderr(&o);
+            assert_ne!(o.status.code(), Some(101), "cut at {at}: {err}");
+            assert!(!err.contains("panicked"), "cut at {at}: {err}");
+            assert!(o.status.success() || err.contains("cut.bag"), "cut at {at}: {err}");
+        }
+    }
+    let o = run(&["bag", "info", s(&cut)]);
+    assert!(stderr(&o).contains("cut short") && stderr(&o).contains("byte"), "{}", stderr(&o));
     // compressedDepth images (16UC1 millimetres), PNG or RVL: the same map either way, and
     // within the millimetre rounding of the dataset's.
     let (png, rvl) = (dir.join("png"), dir.join("rvl"));

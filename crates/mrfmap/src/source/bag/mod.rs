@@ -15,6 +15,7 @@
 
 pub mod cdr;
 pub mod msgs;
+mod ros1;
 pub mod tf;
 
 pub use cdr::Encoding;
@@ -86,7 +87,7 @@ impl Bag {
                 continue;
             }
             if file.extension().is_some_and(|e| e == "bag") {
-                ros1_for_each(file, topics, &mut visit)?;
+                ros1::for_each(file, topics, &mut |t, ty, time, data| visit(t, ty, time, data, Encoding::Ros1))?;
                 continue;
             }
             // The file is read whole (MCAP's reader wants a slice); say so before trying.
@@ -144,39 +145,6 @@ impl Bag {
         buffer.finish();
         Ok(buffer)
     }
-}
-
-/// The messages of a ROS 1 bag file, in file order; types renamed the ROS 2 way.
-fn ros1_for_each(
-    file: &Path,
-    topics: &[&str],
-    visit: &mut impl FnMut(&str, &str, f64, &[u8], Encoding) -> Result<()>,
-) -> Result<()> {
-    use rosbag::{ChunkRecord, MessageRecord, RosBag};
-    let bad = |e: &dyn std::fmt::Display| Error::file(file, format!("not a readable ROS 1 bag: {e}"));
-    let bag = RosBag::new(file).map_err(|e| bad(&e))?;
-    let mut connections: std::collections::HashMap<u32, (String, String)> = std::collections::HashMap::new();
-    for record in bag.chunk_records() {
-        let ChunkRecord::Chunk(chunk) = record.map_err(|e| bad(&e))? else { continue };
-        for msg in chunk.messages() {
-            match msg.map_err(|e| bad(&e))? {
-                MessageRecord::Connection(c) => {
-                    // `sensor_msgs/Image` -> `sensor_msgs/msg/Image`.
-                    let ty = c.tp.split_once('/').map_or(c.tp.to_string(), |(p, t)| format!("{p}/msg/{t}"));
-                    connections.insert(c.id, (c.topic.to_string(), ty));
-                }
-                MessageRecord::MessageData(m) => {
-                    let (topic, ty) = connections
-                        .get(&m.conn_id)
-                        .ok_or_else(|| bad(&format!("message on connection {} before its definition", m.conn_id)))?;
-                    if topics.is_empty() || topics.contains(&topic.as_str()) {
-                        visit(topic, ty, m.time as f64 * 1e-9, m.data, Encoding::Ros1)?;
-                    }
-                }
-            }
-        }
-    }
-    Ok(())
 }
 
 /// The messages of a ROS 2 sqlite3 bag file (`topics` and `messages` tables), in time order.

@@ -807,6 +807,18 @@ fn query_json_contract_and_map_operations() {
     assert!(!o.status.success() && stderr(&o).contains("X,Y,Z:X,Y,Z"), "{}", stderr(&o));
     let o = run(&["query", s(&map_path), "--segment", "0,0,0:1,1,1", "--unknown", "2"]);
     assert!(!o.status.success() && stderr(&o).contains("[0, 1]"), "{}", stderr(&o));
+    // Far endpoints are refused at once (they walked for minutes, or at 1e308 overflowed into
+    // "free"), naming the argument; a long but sane path is answered.
+    for far in ["-1e9,0,0:1e9,0,0", "-1e308,0,0:1e308,0,0", "-1e20,1,1:1e20,1,1"] {
+        let t = std::time::Instant::now();
+        let o = run(&["query", s(&map_path), "--segment", far]);
+        assert!(!o.status.success() && stderr(&o).contains("clip it") && stderr(&o).contains(far), "{}", stderr(&o));
+        assert!(t.elapsed().as_secs() < 20, "{far} took {:?}", t.elapsed());
+    }
+    let o = run(&["query", s(&map_path), "--polyline", "0,0,0:1e9,0,0:0,0,1"]);
+    assert!(!o.status.success() && stderr(&o).contains("--polyline"), "{}", stderr(&o));
+    let o = run(&["query", s(&map_path), "--segment", "-500,0,0.3:500,0,0.3", "--json"]);
+    assert!(o.status.success(), "{}", stderr(&o));
 
     // Crop and clear split the map; merging the halves gives it back; diff sees the cleared box.
     let (inner, outer, merged) = (dir.join("in.mrfmap"), dir.join("out.mrfmap"), dir.join("merged.mrfmap"));

@@ -15,7 +15,7 @@ use mrfmap::inference::{
 };
 use mrfmap::map::Map;
 use mrfmap::outputs::{
-    LiveEngine, OctomapFormat, PlyOptions, PointAnswer, QueryOptions, VoxelSource, query_box, query_points,
+    LiveEngine, OctomapFormat, PlyOptions, PointAnswer, QueryOptions, VoxelSource, check_path, query_box, query_points,
     query_polyline, query_segments, write_octomap, write_ply,
 };
 use mrfmap::rays::{Aabb, RayLimits};
@@ -705,6 +705,9 @@ fn answer_segments<'py>(
 ) -> PyResult<Bound<'py, PyDict>> {
     let options = checked(options)?;
     let segs = pairs_of(starts, ends, ["starts", "ends"])?;
+    for (i, (a, b)) in segs.iter().enumerate() {
+        check_path(&[*a, *b], source.resolution()).map_err(|e| PyValueError::new_err(format!("segment {i}: {e}")))?;
+    }
     let answers = py.detach(|| query_segments(source, &segs, &options));
     let out = PyDict::new(py);
     out.set_item("p_free", PyArray1::from_iter(py, answers.iter().map(|a| a.p_free)))?;
@@ -725,6 +728,7 @@ fn answer_polyline<'py>(
 ) -> PyResult<Bound<'py, PyDict>> {
     let options = checked(options)?;
     let pts = points_of(points, "points")?;
+    check_path(&pts, source.resolution()).map_err(|e| PyValueError::new_err(e.to_string()))?;
     let a = py.detach(|| query_polyline(source, &pts, &options));
     let out = PyDict::new(py);
     out.set_item("p_free", a.p_free)?;

@@ -210,6 +210,11 @@ def test_path_queries_with_confidence(engine):
     assert boxes["occupied"][0] > 0 and boxes["p_free"][0] < 0.5
     with pytest.raises(ValueError, match="same number of rows"):
         m.query_segments(starts, ends[:2])
+    # Far endpoints: refused before any walking (they ran for minutes, or overflowed to "free").
+    with pytest.raises(ValueError, match="segment 0: .*clip it"):
+        m.query_segments(np.array([[-1e9, 0.0, 0.0]]), np.array([[1e9, 0.0, 0.0]]))
+    with pytest.raises(ValueError, match="clip it"):
+        m.map().query_polyline(np.array([[-1e308, 0.0, 0.0], [1e308, 0.0, 0.0]]))
     with pytest.raises(ValueError, match="unknown"):
         m.query_points(starts, unknown=1.5)
     with pytest.raises(ValueError, match="min < max"):

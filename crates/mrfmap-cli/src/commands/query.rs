@@ -5,7 +5,9 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 use mrfmap::map::Map;
-use mrfmap::outputs::{QueryOptions, SegmentAnswer, query_box, query_points, query_polyline, query_segments};
+use mrfmap::outputs::{
+    QueryOptions, SegmentAnswer, check_path, query_box, query_points, query_polyline, query_segments,
+};
 use mrfmap::rays::Aabb;
 use serde_json::{Value, json};
 
@@ -52,6 +54,13 @@ pub fn run(a: Args) -> Result<()> {
         None => Vec::new(),
     };
     let map = Map::load(&a.map)?;
+    let r = map.resolution();
+    for ((from, to), text) in segments.iter().zip(&a.segment) {
+        check_path(&[*from, *to], r).with_context(|| format!("--segment {text}"))?;
+    }
+    for (points, text) in polylines.iter().zip(&a.polyline) {
+        check_path(points, r).with_context(|| format!("--polyline {text}"))?;
+    }
 
     let seg_answers = query_segments(&map, &segments, &options);
     let poly_answers: Vec<_> = polylines.iter().map(|p| query_polyline(&map, p, &options)).collect();

@@ -211,6 +211,42 @@ pub fn query_points(source: &impl VoxelSource, points: &[[f64; 3]], options: &Qu
     points.par_iter().with_min_len(4096).map(|p| query_point(source, *p, options)).collect()
 }
 
+/// Longest path, in voxels walked, that [`check_path`] lets through: a second or two of
+/// walking; anything longer is far outside every map this library can hold.
+pub const MAX_PATH_VOXELS: f64 = 1e7;
+
+/// Refuses a path (a segment's two ends, or a polyline's points) that [`query_segment`] or
+/// [`query_polyline`] could not answer in reasonable time or at all: a coordinate that is not
+/// finite, a leg whose length overflows, or more than [`MAX_PATH_VOXELS`] voxels to walk at
+/// `resolution` (a segment between points 10^9 m apart would walk for minutes, voxel by unknown
+/// voxel). The front ends call it before they query.
+///
+/// ```
+/// use mrfmap::outputs::check_path;
+/// assert!(check_path(&[[0.0; 3], [10.0, 0.0, 0.0]], 0.05).is_ok());
+/// assert!(check_path(&[[-1e9, 0.0, 0.0], [1e9, 0.0, 0.0]], 0.05).is_err());
+/// assert!(check_path(&[[-1e308, 0.0, 0.0], [1e308, 0.0, 0.0]], 0.05).is_err());
+/// ```
+pub fn check_path(points: &[[f64; 3]], resolution: f64) -> Result<()> {
+    if let Some(p) = points.iter().find(|p| p.iter().any(|c| !c.is_finite())) {
+        return Err(Error::Invalid(format!("path point {p:?} is not finite")));
+    }
+    // A segment crosses at most one voxel per grid plane it passes, plus its first.
+    let walked: f64 = points
+        .windows(2)
+        .map(|leg| 1.0 + (0..3).map(|a| (leg[1][a] - leg[0][a]).abs() / resolution).sum::<f64>())
+        .sum();
+    if !(walked <= MAX_PATH_VOXELS) {
+        let length: f64 =
+            points.windows(2).map(|l| (0..3).map(|a| (l[1][a] - l[0][a]).powi(2)).sum::<f64>().sqrt()).sum();
+        return Err(Error::Invalid(format!(
+            "a path of {length:.3e} m crosses up to {walked:.3e} voxels of {resolution} m; at most {MAX_PATH_VOXELS:.0e} \
+             are walked: clip it to the region you plan in"
+        )));
+    }
+    Ok(())
+}
+
 /// The map's belief along the segment from `a` to `b`.
 ///
 /// A segment of zero length crosses no voxel: it is free with probability 1.

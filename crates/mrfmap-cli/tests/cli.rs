@@ -110,6 +110,16 @@ fn simulate_build_info_export() {
     let o = run(&["info", s(&map)]);
     let info = stdout(&o);
     assert!(o.status.success() && info.contains("logodds") && info.contains("0.05 m"), "{info}");
+    // The same for scripts: one JSON object with the map's own numbers.
+    let o = run(&["info", s(&map), "--json"]);
+    let json: serde_json::Value = serde_json::from_str(&stdout(&o)).unwrap();
+    let loaded = mrfmap::map::Map::load(&map).unwrap();
+    assert_eq!(json["voxels"].as_u64().unwrap() as usize, loaded.voxels.len());
+    assert_eq!(json["occupied"].as_u64().unwrap() as usize, loaded.occupied_count());
+    assert_eq!((json["engine"].as_str(), json["resolution"].as_f64()), (Some("logodds"), Some(0.05)));
+    let per_voxel = json["bytes_per_voxel"].as_f64().unwrap();
+    assert!(per_voxel > 1.0 && per_voxel < 200.0, "{json}");
+    assert_eq!(json["bounds"].as_array().unwrap().len(), 2);
     let ply = dir.join("m.ply");
     let o = run(&["export", s(&map), "--ply", s(&ply), "--occupied-only"]);
     assert!(o.status.success(), "{}", stderr(&o));

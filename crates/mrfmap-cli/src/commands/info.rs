@@ -1,4 +1,4 @@
-//! `mrfmap info`: what is in a map file.
+//! `mrfmap info`: what is in a map file, as text or as one JSON object for scripts.
 
 use std::path::PathBuf;
 
@@ -9,10 +9,34 @@ use mrfmap::map::Map;
 pub struct Args {
     /// Map file.
     map: PathBuf,
+    /// Print one JSON object (`file`, `engine`, `resolution`, `voxels`, `occupied`, `bricks`,
+    /// `bounds` as `[[min], [max]]` or null, `variance`, `memory_bytes`, `bytes_per_voxel`,
+    /// `params`).
+    #[arg(long)]
+    json: bool,
 }
 
 pub fn run(a: Args) -> Result<()> {
     let map = Map::load(&a.map)?;
+    let memory = map.voxels.memory_bytes();
+    let per_voxel = memory as f64 / map.voxels.len().max(1) as f64;
+    if a.json {
+        let json = serde_json::json!({
+            "file": a.map.display().to_string(),
+            "engine": map.engine,
+            "resolution": map.resolution(),
+            "voxels": map.voxels.len(),
+            "occupied": map.occupied_count(),
+            "bricks": map.voxels.brick_count(),
+            "bounds": map.bounds().map(|(lo, hi)| [lo, hi]),
+            "variance": map.has_variance,
+            "memory_bytes": memory,
+            "bytes_per_voxel": per_voxel,
+            "params": map.params,
+        });
+        println!("{json}");
+        return Ok(());
+    }
     println!("file:        {}", a.map.display());
     println!("engine:      {}", map.engine);
     println!("resolution:  {} m", map.resolution());
@@ -26,7 +50,7 @@ pub fn run(a: Args) -> Result<()> {
         None => println!("bounds:      (empty map)"),
     }
     println!("variance:    {}", if map.has_variance { "yes" } else { "no" });
-    println!("memory:      {:.1} MiB in memory", map.voxels.memory_bytes() as f64 / (1 << 20) as f64);
+    println!("memory:      {:.1} MiB in memory ({per_voxel:.1} bytes per voxel)", memory as f64 / (1 << 20) as f64);
     for (k, v) in &map.params {
         println!("param:       {k} = {v}");
     }

@@ -60,6 +60,9 @@ pub struct Args {
     /// Score every N-th frame that is not a keyframe (1: all of them, as the paper).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..))]
     views_every: u32,
+    /// CRM particles per voxel.
+    #[arg(long, default_value_t = 101, value_parser = clap::value_parser!(u16).range(2..))]
+    particles: u16,
     /// The world's up axis for the map pictures (ICL-NUIM: +y).
     #[arg(long, default_value = "+y", allow_hyphen_values = true, value_parser = |s: &str| s.parse::<Up>().map_err(|e| e.to_string()))]
     up: Up,
@@ -115,7 +118,8 @@ pub fn mrfmap_table2(a: Args) -> Result<()> {
     for &resolution in &a.resolutions {
         for name in &a.engines {
             let kind: EngineKind = name.parse()?;
-            let config = EngineConfig::new(kind, resolution);
+            let mut config = EngineConfig::new(kind, resolution);
+            config.crm.particles = a.particles as usize;
             check_build(&config, dataset_extent(&data, &keyframes, &config)?, keyframes.len(), BUILD_ADVICE)?;
             let t = Instant::now();
             let map = build_map(&keyframes, &config, |i| data.frame(i))?.map;
@@ -147,6 +151,7 @@ pub fn mrfmap_table2(a: Args) -> Result<()> {
         "dataset": a.dataset.display().to_string(),
         "model": a.noise.model,
         "seed": a.noise.seed,
+        "particles": a.particles,
         "keyframes": keyframes,
         "held_out_views": held_out,
         "noise": noise_line,
@@ -206,8 +211,8 @@ fn report(
         r,
         "Noise: `{}` (seed {}); {noise_line}. Keyframes ({}: moved > {} m or turned > {} rad from the last): {}. \
          Scored: {scored} other frames ({}) against their noise-free depth, reference metric \
-         (docs/ALGORITHMS.md 6.1). Default engine settings; the MRF and CRM map with the noise's forward model \
-         (`noisy/noise.toml`). Total time {:.0} s.\n",
+         (docs/ALGORITHMS.md 6.1). Default engine settings (CRM: {} particles); the MRF and CRM map with the noise's \
+         forward model (`noisy/noise.toml`). Total time {:.0} s.\n",
         a.noise.model,
         a.noise.seed,
         keyframes.len(),
@@ -219,6 +224,7 @@ fn report(
         } else {
             format!("every {}th non-keyframe", a.views_every)
         },
+        a.particles,
         elapsed
     );
     for (title, pick) in [

@@ -1064,7 +1064,16 @@ fn ros2_bags_build_the_same_map_as_the_dataset() {
     let o = run(&["bag", "info", s(&direct)]);
     let info = stdout(&o);
     assert!(info.contains("/camera/depth/image_rect_raw") && info.contains("sensor_msgs/msg/Image"), "{info}");
-    assert!(info.contains("TF frames: camera_depth_optical, map"), "{info}");
+    assert!(info.contains("TF frames: camera_depth_optical, map") && info.contains("lasts"), "{info}");
+    let o = run(&["bag", "info", s(&direct), "--json"]);
+    let json: serde_json::Value = serde_json::from_str(&stdout(&o)).unwrap();
+    let topics = json["topics"].as_array().unwrap();
+    let image = topics.iter().find(|t| t["topic"] == "/camera/depth/image_rect_raw").unwrap();
+    assert_eq!((image["type"].as_str(), image["messages"].as_u64()), (Some("sensor_msgs/msg/Image"), Some(4)));
+    let (start, end) = (json["start"].as_f64().unwrap(), json["end"].as_f64().unwrap());
+    assert!(start <= image["first"].as_f64().unwrap() && end >= image["last"].as_f64().unwrap(), "{json}");
+    assert!((json["duration"].as_f64().unwrap() - (end - start)).abs() < 1e-9);
+    assert_eq!(json["tf_frames"], serde_json::json!(["camera_depth_optical", "map"]));
     let depth = ["--depth-topic", "/camera/depth/image_rect_raw"];
     let build = |bag: &Path, out: &Path, extra: &[&str]| {
         let mut args = vec!["build", s(bag), "-o", s(out), "--resolution", "0.05"];
@@ -1138,6 +1147,10 @@ fn ros2_bags_build_the_same_map_as_the_dataset() {
     }
     let o = run(&["bag", "info", s(&cut)]);
     assert!(stderr(&o).contains("cut short") && stderr(&o).contains("byte"), "{}", stderr(&o));
+    // A file that is no bag at all: the error alone, no table header before it.
+    std::fs::write(dir.join("junk.bag"), b"not a bag").unwrap();
+    let o = run(&["bag", "info", s(&dir.join("junk.bag"))]);
+    assert!(!o.status.success() && stdout(&o).is_empty() && stderr(&o).contains("junk.bag"), "{}", stderr(&o));
     // compressedDepth images (16UC1 millimetres), PNG or RVL: the same map either way, and
     // within the millimetre rounding of the dataset's.
     let (png, rvl) = (dir.join("png"), dir.join("rvl"));

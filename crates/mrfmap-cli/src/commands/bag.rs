@@ -1,12 +1,12 @@
-//! `mrfmap bag info BAG`: what a ROS 2 bag holds: topics, types, counts, rates, and the frames
-//! of its transform tree; `mrfmap export-dataset BAG -o DIR`: its depth images as a dataset.
+//! `mrfmap bag info BAG`: what a ROS 2 or ROS 1 bag holds: topics, types, counts, rates, its log
+//! time span, and the frames of its transform tree; `mrfmap export-dataset BAG -o DIR`: its depth images as a dataset.
 
 use std::path::PathBuf;
 
 use anyhow::Result;
 use mrfmap::frames::NoiseModel;
 use mrfmap::source::DatasetWriter;
-use mrfmap::source::bag::Bag;
+use mrfmap::source::bag::{Bag, TopicInfo};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -16,26 +16,59 @@ pub struct Args {
 
 #[derive(clap::Subcommand)]
 enum Command {
-    /// Topics, types, message counts and rates, and the TF tree's frames.
+    /// Topics, types, message counts and rates, the log's start and duration, and the TF
+    /// tree's frames.
     Info {
-        /// A .mcap file or a bag folder.
+        /// A .mcap, .db3 or ROS 1 .bag file, or a bag folder.
         bag: PathBuf,
+        /// Print one JSON object (`bag`, `start`, `end`, `duration` in seconds of log time,
+        /// `topics` with `topic`, `type`, `messages`, `first`, `last`, `rate_hz`, and
+        /// `tf_frames`).
+        #[arg(long)]
+        json: bool,
     },
 }
 
 pub fn run(a: Args) -> Result<()> {
     match a.command {
-        Command::Info { bag } => {
+        Command::Info { bag, json } => {
             let bag = Bag::open(&bag)?;
-            println!("{}", bag.path.display());
-            println!("{:<40} {:<36} {:>8} {:>9}", "topic", "type", "messages", "rate (Hz)");
-            for t in bag.topics()? {
+            // Everything is read before anything is printed: a broken bag gives an error alone.
+            let topics = bag.topics()?;
+            let frames = bag.tf()?.frames();
+            let start = topics.iter().map(|t| t.span.0).fold(f64::INFINITY, f64::min);
+            let end = topics.iter().map(|t| t.span.1).fold(f64::NEG_INFINITY, f64::max);
+            let rate = |t: &TopicInfo| {
                 let dt = t.span.1 - t.span.0;
-                let rate =
-                    if t.count > 1 && dt > 0.0 { format!("{:.2}", (t.count - 1) as f64 / dt) } else { "-".into() };
+                (t.count > 1 && dt > 0.0).then(|| (t.count - 1) as f64 / dt)
+            };
+            if json {
+                let finite = |v: f64| v.is_finite().then_some(v);
+                let out = serde_json::json!({
+                    "bag": bag.path.display().to_string(),
+                    "start": finite(start),
+                    "end": finite(end),
+                    "duration": finite(end - start),
+                    "topics": topics.iter().map(|t| serde_json::json!({
+                        "topic": t.topic, "type": t.msgtype, "messages": t.count,
+                        "first": t.span.0, "last": t.span.1, "rate_hz": rate(t),
+                    })).collect::<Vec<_>>(),
+                    "tf_frames": frames,
+                });
+                println!("{out}");
+                return Ok(());
+            }
+            println!("{}", bag.path.display());
+            if start.is_finite() {
+                println!("log time: starts at {start:.3} s, lasts {:.3} s", end - start);
+            } else {
+                println!("no messages");
+            }
+            println!("{:<40} {:<36} {:>8} {:>9}", "topic", "type", "messages", "rate (Hz)");
+            for t in &topics {
+                let rate = rate(t).map_or("-".into(), |r| format!("{r:.2}"));
                 println!("{:<40} {:<36} {:>8} {:>9}", t.topic, t.msgtype, t.count, rate);
             }
-            let frames = bag.tf()?.frames();
             if !frames.is_empty() {
                 println!("TF frames: {}", frames.join(", "));
             }

@@ -277,6 +277,16 @@ fn bad_dataset_files_give_clear_errors() {
     let gt = std::fs::read_to_string(data.join("groundtruth.txt")).unwrap();
     let depth_list = std::fs::read_to_string(data.join("depth.txt")).unwrap();
 
+    // A map named like another format is refused before any work, pointing at export.
+    for name in ["m.bt", "m.PLY"] {
+        let o = run(&["build", s(&data), "-o", s(&dir.join(name)), "--resolution", "0.05"]);
+        assert!(
+            !o.status.success() && stderr(&o).contains("mrfmap export") && !dir.join(name).exists(),
+            "{}",
+            stderr(&o)
+        );
+    }
+
     std::fs::remove_file(data.join("camera.toml")).unwrap();
     build_fails(&data, &[], &["camera.toml", "missing"]);
     std::fs::write(data.join("camera.toml"), cam.replace("fx = ", "focal = ")).unwrap();

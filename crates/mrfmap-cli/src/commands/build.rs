@@ -557,6 +557,15 @@ pub fn build_online(
 pub fn run(a: Args) -> Result<()> {
     let kind: EngineKind = a.engine.parse()?;
     check_output_folder(&a.output)?;
+    // A map named like another format would be a .mrfmap file under a misleading name.
+    let extension = a.output.extension().map(|e| e.to_string_lossy().to_lowercase());
+    if let Some(ext) = extension.filter(|e| ["bt", "ot", "ply", "mcap", "png", "pgm", "yaml"].contains(&e.as_str())) {
+        bail!(
+            "{}: build writes .mrfmap maps; for .{ext} build a .mrfmap and convert it with `mrfmap export` \
+             (or `project` for a 2D grid)",
+            a.output.display()
+        );
+    }
     let scans = !BagArgs::is_bag(&a.dataset) && a.dataset.is_file() || a.bag.scan_topic.is_some();
     if scans && kind == EngineKind::Mrf {
         // Said before the memory estimate, which cannot size an MRF from range scans.

@@ -326,6 +326,16 @@ fn bad_dataset_files_give_clear_errors() {
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(stderr(&o).contains("normalised"), "{}", stderr(&o));
 
+    // A timestamp given twice: the same pose is fine, two different poses are an error.
+    let first_pose = gt.lines().find(|l| !l.starts_with('#')).unwrap().to_string();
+    std::fs::write(data.join("groundtruth.txt"), format!("{gt}\n{first_pose}\n")).unwrap();
+    let o = run(&["build", s(&data), "-o", s(&map), "--resolution", "0.1"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let mut moved: Vec<String> = first_pose.split_whitespace().map(String::from).collect();
+    moved[1] = format!("{}", moved[1].parse::<f64>().unwrap() + 0.5);
+    std::fs::write(data.join("groundtruth.txt"), format!("{gt}\n{}\n", moved.join(" "))).unwrap();
+    build_fails(&data, &[], &["groundtruth.txt", "two different poses"]);
+
     // No pose near any frame; then an empty dataset; then a listed frame that is missing.
     std::fs::write(data.join("groundtruth.txt"), "100.0 0 0 0 0 0 0 1\n").unwrap();
     build_fails(&data, &[], &["groundtruth.txt", "no depth frame matched"]);

@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use crate::error::{Error, Result, read_text};
-use crate::frames::{Camera, DepthImage, Frame, NoiseModel, Pose, pose_from_tum};
+use crate::frames::{Camera, DepthImage, Frame, NoiseModel, Pose, moved_beyond, pose_from_tum};
 use crate::source::depth_png::read_depth_png;
 
 /// How a dataset is opened.
@@ -249,10 +249,17 @@ fn parse_groundtruth(path: &Path) -> Result<Vec<(f64, Pose)>> {
         if normalised {
             tracing::warn!("{}: line {line}: quaternion is not unit length; normalised", path.display());
         }
-        out.push((v[0], pose));
+        out.push((v[0], pose, line));
     }
     out.sort_by(|a, b| a.0.total_cmp(&b.0));
-    Ok(out)
+    // One timestamp, one pose: a repeated line is dropped, a conflicting one is an error
+    // (which of the two the camera had cannot be known).
+    out.dedup_by(|later, kept| later.0 == kept.0 && !moved_beyond(&kept.1, &later.1, 1e-6, 1e-6));
+    if let Some(w) = out.windows(2).find(|w| w[0].0 == w[1].0) {
+        let (a, b) = (w[0].2.min(w[1].2), w[0].2.max(w[1].2));
+        return Err(Error::file(path, format!("lines {a} and {b} give timestamp {} two different poses", w[0].0)));
+    }
+    Ok(out.into_iter().map(|(t, pose, _)| (t, pose)).collect())
 }
 
 /// TUM's `associate.py` rule: among all (depth, pose) pairs closer than `max_diff`, take

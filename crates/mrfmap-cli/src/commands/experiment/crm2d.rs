@@ -21,8 +21,6 @@ use super::{Crm2dArgs, Method, sweep};
 const NOISE_CELLS: [f64; 5] = [0.25, 0.5, 1.0, 2.0, 3.0];
 const BEAMS: usize = 60;
 const MAX_RANGE: f64 = 1.0;
-/// Particle counts compared: the reference's 101, and 15 (64 bytes per voxel with the mean).
-const PARTICLES: [usize; 2] = [101, 15];
 
 struct Row {
     method: Method,
@@ -91,14 +89,14 @@ pub(super) fn crm_2d(a: Crm2dArgs) -> Result<()> {
             .map(|(i, p)| world.scan(i, *p, BEAMS, MAX_RANGE, std, &mut rng))
             .collect::<mrfmap::Result<_>>()?;
         let mut rows = Vec::new();
-        for k in PARTICLES {
+        for &k in &a.particles {
             rows.push(evaluate(Method::Crm(k), &world, &scans, a.repeat)?);
         }
         rows.push(evaluate(paper, &world, &scans, a.repeat)?);
         let swept: Vec<Row> =
             sweep().into_iter().map(|m| evaluate(Method::LogOdds(m), &world, &scans, 1)).collect::<Result<_>>()?;
         if level == 0 {
-            figure(&world, &waypoints, &rows[0], &rows[PARTICLES.len()], &a.output.join("crm2d_maps.png"))?;
+            figure(&world, &waypoints, &rows[0], &rows[a.particles.len()], &a.output.join("crm2d_maps.png"))?;
         }
         table.push((format!("{n} s"), rows));
         sweep_rows.push(swept);
@@ -147,10 +145,10 @@ pub(super) fn crm_2d(a: Crm2dArgs) -> Result<()> {
     let beaten = swept.iter().filter(|r| crm.metrics.mae < r.metrics.mae).count();
     let _ = writeln!(
         report,
-        "\n## ISM sweep at 1 s noise (the paper's Fig. 10)\n\nCRM (101 particles): MAE {:.3}, I_c {:.1}. \
+        "\n## ISM sweep at 1 s noise (the paper's Fig. 10)\n\nCRM ({} particles): MAE {:.3}, I_c {:.1}. \
          CRM has the lower MAE than {beaten} of the 48 log-odds settings.\n\n\
          | q_high - 0.5 | r_ramp | r_top | MAE | AUC | I_c (gamma 0.5) | PCC | MAE gain of CRM |\n|---|---|---|---|---|---|---|---|",
-        crm.metrics.mae, crm.metrics.ic_half
+        a.particles[0], crm.metrics.mae, crm.metrics.ic_half
     );
     for r in swept {
         if let Method::LogOdds(SensorModel::Ramp { q_high, r_ramp, r_top, .. }) = r.method {
@@ -168,8 +166,9 @@ pub(super) fn crm_2d(a: Crm2dArgs) -> Result<()> {
     }
     let _ = writeln!(
         report,
-        "\n`crm2d_maps.png`: at 0.25 s noise, columns CRM (101 particles) and log-odds (paper ISM); \
-         rows truth with waypoints, mean, sigma (0 to 0.5), |error|, I_c with gamma 0.5 (the paper's Fig. 8)."
+        "\n`crm2d_maps.png`: at 0.25 s noise, columns CRM ({} particles) and log-odds (paper ISM); \
+         rows truth with waypoints, mean, sigma (0 to 0.5), |error|, I_c with gamma 0.5 (the paper's Fig. 8).",
+        a.particles[0]
     );
     let path = a.output.join("report.md");
     write_text(&path, &report)?;

@@ -59,6 +59,9 @@ pub struct Crm2dArgs {
     /// Output folder (report.md and PNG pictures).
     #[arg(short, long)]
     output: PathBuf,
+    /// CRM particle counts to compare; the first is the CRM the checks and pictures use.
+    #[arg(long, value_delimiter = ',', default_value = "101,15", value_parser = particles)]
+    particles: Vec<usize>,
     /// Noise seed.
     #[arg(long, default_value_t = 1)]
     seed: u64,
@@ -201,4 +204,13 @@ fn noisy_copy(clean: &Dataset, dir: &Path, noise: &NoiseArgs) -> Result<(Dataset
     }
     let summary = noise.write(clean, &noisy)?;
     Ok((Dataset::open(&noisy)?, summary))
+}
+
+/// clap parser for a CRM particle count: at least 2.
+fn particles(s: &str) -> std::result::Result<usize, String> {
+    match s.trim().parse::<usize>() {
+        Ok(k) if (2..=65_535).contains(&k) => Ok(k),
+        Ok(k) => Err(format!("a CRM needs 2 to 65535 particles, got {k}")),
+        Err(e) => Err(e.to_string()),
+    }
 }

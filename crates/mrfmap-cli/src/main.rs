@@ -31,12 +31,12 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Build a map from a dataset, a laser log or a ROS 2 bag.
+    /// Build a map from a dataset, a laser log, or a ROS 2 (MCAP, .db3) or ROS 1 bag.
     Build(commands::build::Args),
-    /// Look into a ROS 2 bag: `bag info BAG`.
+    /// Look into a ROS 2 or ROS 1 bag: `bag info BAG`.
     #[cfg(feature = "bags")]
     Bag(commands::bag::Args),
-    /// Write a ROS 2 bag's posed depth images as a TUM-layout dataset.
+    /// Write a ROS 2 or ROS 1 bag's posed depth images as a TUM-layout dataset.
     #[cfg(feature = "bags")]
     ExportDataset(commands::bag::ExportArgs),
     /// Learn a per-patch noise model (noise.toml) from measured and true depth images.

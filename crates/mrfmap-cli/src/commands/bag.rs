@@ -79,7 +79,7 @@ pub fn run(a: Args) -> Result<()> {
 
 #[derive(clap::Args)]
 pub struct ExportArgs {
-    /// A .mcap or .db3 file, or a bag folder.
+    /// A .mcap, .db3 or ROS 1 .bag file, or a bag folder.
     bag: PathBuf,
     /// Output dataset folder (TUM layout).
     #[arg(short, long)]

@@ -209,7 +209,7 @@ impl LaserOptions {
     }
 }
 
-/// Where a ROS 2 bag's depth images and poses are.
+/// Where a ROS 2 or ROS 1 bag's depth images and poses are.
 #[derive(clap::Args, Clone)]
 pub struct BagArgs {
     /// Bags: the depth image topic (sensor_msgs/Image, 16UC1 mm or 32FC1 m).
@@ -316,8 +316,8 @@ fn posed<T>(path: &std::path::Path, topic: &str, items: Vec<T>, skipped: &[Strin
 #[derive(clap::Args)]
 pub struct Args {
     /// Dataset folder (TUM / ICL-NUIM layout with camera.toml), a CARMEN laser log file
-    /// (plain or .gz; a one-voxel-thick map at z = 0 to one voxel), or a ROS 2 bag (.mcap or a
-    /// bag folder; with --depth-topic and --fixed-frame or --pose-topic).
+    /// (plain or .gz; a one-voxel-thick map at z = 0 to one voxel), or a ROS 2 bag (.mcap, .db3 or
+    /// a bag folder) or ROS 1 .bag (with --depth-topic and --fixed-frame or --pose-topic).
     dataset: PathBuf,
     /// Output map file.
     #[arg(short, long)]

@@ -277,6 +277,24 @@ fn bad_dataset_files_give_clear_errors() {
     let gt = std::fs::read_to_string(data.join("groundtruth.txt")).unwrap();
     let depth_list = std::fs::read_to_string(data.join("depth.txt")).unwrap();
 
+    // A declared up axis: recorded in the map (which `view` then stands on it), kept by
+    // add-noise; a bad declaration names the file.
+    std::fs::write(data.join("world.toml"), "up = \"+y\"\n").unwrap();
+    let up_map = dir.join("up.mrfmap");
+    let o = run(&["build", s(&data), "-o", s(&up_map), "--resolution", "0.1"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let info: serde_json::Value = serde_json::from_str(&stdout(&run(&["info", s(&up_map), "--json"]))).unwrap();
+    assert_eq!(info["params"]["up"], "+y");
+    assert!(run(&["view", s(&up_map), "-o", s(&dir.join("up.png")), "--size", "64x48"]).status.success());
+    let noisy = dir.join("noisy-up");
+    assert!(run(&["add-noise", s(&data), "-o", s(&noisy), "-q"]).status.success());
+    assert_eq!(std::fs::read_to_string(noisy.join("world.toml")).unwrap(), "up = \"+y\"\n");
+    std::fs::write(data.join("world.toml"), "up = \"y+\"\n").unwrap();
+    build_fails(&data, &[], &["world.toml", "up axis"]);
+    std::fs::write(data.join("world.toml"), "down = \"-y\"\n").unwrap();
+    build_fails(&data, &[], &["world.toml", "down"]);
+    std::fs::remove_file(data.join("world.toml")).unwrap();
+
     // A map named like another format is refused before any work, pointing at export.
     for name in ["m.bt", "m.PLY"] {
         let o = run(&["build", s(&data), "-o", s(&dir.join(name)), "--resolution", "0.05"]);

@@ -589,6 +589,7 @@ pub fn run(a: Args) -> Result<()> {
         Some(o) => build_online(indices, &config, reading, o),
         None => build_map(indices, &config, reading),
     };
+    let mut up = None;
     let (report, indices_used) = if let (true, Some(topic)) = (BagArgs::is_bag(&a.dataset), &a.bag.scan_topic) {
         let scans = a.bag.scans(&a.dataset, topic, a.options.noise.as_deref())?;
         let indices = select_frames(scans.len(), &a.frames, &a.exclude)?;
@@ -636,12 +637,17 @@ pub fn run(a: Args) -> Result<()> {
             dataset.len(),
             a.resolution
         );
+        up = dataset.up();
         (build(&indices, &mut |i| dataset.frame(i))?, indices)
     };
     let mut map = report.map;
     // What went in, so `eval` can tell held-out views from views the map was built from.
     map.params.insert("source".into(), a.dataset.display().to_string());
     map.params.insert("frames".into(), format_ranges(&indices_used));
+    // The world's up axis, which `view` stands the map on.
+    if let Some(up) = up {
+        map.params.insert("up".into(), up.to_string());
+    }
     map.save(&a.output)?;
     println!(
         "{}: {} frames, {} voxels ({} occupied), {:.1} ms/frame",

@@ -32,9 +32,10 @@ pub struct Args {
     #[arg(long, default_value_t = 0.5, value_parser = super::threshold)]
     threshold: f32,
     /// The world direction drawn up and coloured as height: +z (ROS), or +y for worlds such as
-    /// ICL-NUIM, 7-Scenes and Redwood whose gravity is along -y; -y, +x, -x, -z too.
-    #[arg(long, default_value = "+z", allow_hyphen_values = true, value_parser = |s: &str| s.parse::<Up>().map_err(|e| e.to_string()))]
-    up: Up,
+    /// ICL-NUIM, 7-Scenes and Redwood whose gravity is along -y; -y, +x, -x, -z too. Default:
+    /// what the map recorded from its dataset's world.toml, else +z.
+    #[arg(long, allow_hyphen_values = true, value_parser = |s: &str| s.parse::<Up>().map_err(|e| e.to_string()))]
+    up: Option<Up>,
     /// Instead of the 3D picture, the occupancy slice at AXIS=VALUE (e.g. z=0.5).
     #[arg(long, allow_hyphen_values = true)]
     slice: Option<String>,
@@ -75,7 +76,8 @@ pub fn run(a: Args) -> Result<()> {
         let value: f64 = value.trim().parse().with_context(|| format!("--slice {slice:?}: bad value"))?;
         slice_map(&map, axis, value)?
     } else {
-        let mut view = View::overview(&map, a.up).expect("map is not empty");
+        let recorded = map.params.get("up").map(|u| u.parse::<Up>()).transpose()?;
+        let mut view = View::overview(&map, a.up.or(recorded).unwrap_or(Up::Z)).expect("map is not empty");
         if let Some(e) = &a.eye {
             view.eye = triple("eye", e)?;
         }

@@ -17,7 +17,7 @@ pub use calibration::{BinStats, Calibration, CalibrationOptions, Calibrator, Pat
 pub use camera::{Camera, MAX_PIXELS, MAX_SIDE};
 pub use depth::DepthImage;
 pub use noise::{Intervals, NoiseModel, PatchModel, Poly, RayLikelihood, STD_FLOOR, TAIL_CUTOFF, upper_tail};
-pub use pose::{Pose, keyframes_by_motion, look_at, moved_beyond, pose_from_tum, pose_to_tum};
+pub use pose::{Pose, Up, keyframes_by_motion, look_at, moved_beyond, pose_from_tum, pose_to_tum};
 pub use scan::{Beam, RangeScan};
 
 /// One depth reading ready for integration.

@@ -91,6 +91,65 @@ pub fn look_at(eye: Vector3<f64>, target: Vector3<f64>) -> Result<Pose, String> 
     Ok(Isometry3::from_parts(Translation3::from(eye), UnitQuaternion::from_rotation_matrix(&rotation)))
 }
 
+/// A world's up axis (against gravity): `+x`, `-x`, `+y`, `-y`, `+z` or `-z`. ROS worlds are
+/// `+z`; ICL-NUIM, 7-Scenes and Redwood are `+y`. A dataset may declare it (`world.toml`); maps
+/// built from it record it, and pictures stand the map on it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Up {
+    /// 0, 1, 2 for x, y, z.
+    pub axis: usize,
+    /// Up is the axis's negative direction.
+    pub negative: bool,
+}
+
+impl Up {
+    /// `+z`, the default: ROS and most robot worlds.
+    pub const Z: Up = Up { axis: 2, negative: false };
+
+    /// The unit vector pointing up.
+    pub fn vector(self) -> [f64; 3] {
+        let mut v = [0.0; 3];
+        v[self.axis] = if self.negative { -1.0 } else { 1.0 };
+        v
+    }
+
+    /// Height of world point `p`.
+    pub fn height(self, p: [f64; 3]) -> f64 {
+        if self.negative { -p[self.axis] } else { p[self.axis] }
+    }
+
+    /// The range of heights over the box `lo`..`hi`.
+    pub fn heights(self, lo: [f64; 3], hi: [f64; 3]) -> (f64, f64) {
+        let (a, b) = (self.height(lo), self.height(hi));
+        (a.min(b), a.max(b))
+    }
+}
+
+impl std::str::FromStr for Up {
+    type Err = crate::error::Error;
+
+    /// `+x`, `-x`, `+y`, `-y`, `+z`, `-z` (a bare axis is its positive direction).
+    fn from_str(s: &str) -> crate::error::Result<Self> {
+        let (negative, axis) = match s.trim().strip_prefix('-') {
+            Some(rest) => (true, rest),
+            None => (false, s.trim().strip_prefix('+').unwrap_or(s.trim())),
+        };
+        let axis = match axis {
+            "x" => 0,
+            "y" => 1,
+            "z" => 2,
+            _ => return Err(crate::error::Error::Invalid(format!("up axis {s:?}: use +x, -x, +y, -y, +z or -z"))),
+        };
+        Ok(Up { axis, negative })
+    }
+}
+
+impl std::fmt::Display for Up {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}{}", if self.negative { '-' } else { '+' }, ["x", "y", "z"][self.axis])
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -12,6 +12,7 @@ use super::canvas::{Canvas, Rgb};
 use super::pictures::viridis;
 use super::truth::mean_sigma;
 use crate::error::{Error, Result};
+pub use crate::frames::Up;
 use crate::map::{Grid2d, Map, MapVoxel, VoxelKey};
 use crate::rays::{Aabb, for_each_crossing};
 
@@ -37,63 +38,6 @@ impl std::str::FromStr for Colouring {
             "occupancy" => Ok(Colouring::Occupancy),
             _ => Err(Error::Invalid(format!("unknown colouring {s:?}; use height, sigma or occupancy"))),
         }
-    }
-}
-
-/// The world direction that is up in a picture: `+x`, `-x`, `+y`, `-y`, `+z` or `-z`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Up {
-    /// 0, 1, 2 for x, y, z.
-    pub axis: usize,
-    /// Up is the axis's negative direction.
-    pub negative: bool,
-}
-
-impl Up {
-    /// `+z`, the default: ROS and most robot worlds.
-    pub const Z: Up = Up { axis: 2, negative: false };
-
-    /// The unit vector pointing up.
-    pub fn vector(self) -> [f64; 3] {
-        let mut v = [0.0; 3];
-        v[self.axis] = if self.negative { -1.0 } else { 1.0 };
-        v
-    }
-
-    /// Height of world point `p`.
-    pub fn height(self, p: [f64; 3]) -> f64 {
-        if self.negative { -p[self.axis] } else { p[self.axis] }
-    }
-
-    /// The range of heights over the box `lo`..`hi`.
-    pub fn heights(self, lo: [f64; 3], hi: [f64; 3]) -> (f64, f64) {
-        let (a, b) = (self.height(lo), self.height(hi));
-        (a.min(b), a.max(b))
-    }
-}
-
-impl std::str::FromStr for Up {
-    type Err = Error;
-
-    /// `+x`, `-x`, `+y`, `-y`, `+z`, `-z` (a bare axis is its positive direction).
-    fn from_str(s: &str) -> Result<Self> {
-        let (negative, axis) = match s.trim().strip_prefix('-') {
-            Some(rest) => (true, rest),
-            None => (false, s.trim().strip_prefix('+').unwrap_or(s.trim())),
-        };
-        let axis = match axis {
-            "x" => 0,
-            "y" => 1,
-            "z" => 2,
-            _ => return Err(Error::Invalid(format!("up axis {s:?}: use +x, -x, +y, -y, +z or -z"))),
-        };
-        Ok(Up { axis, negative })
-    }
-}
-
-impl std::fmt::Display for Up {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "{}{}", if self.negative { '-' } else { '+' }, ["x", "y", "z"][self.axis])
     }
 }
 

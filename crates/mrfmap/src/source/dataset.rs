@@ -1,7 +1,7 @@
 //! Datasets in the TUM RGB-D / ICL-NUIM layout (docs/ALGORITHMS.md section 2).
 //!
 //! ```text
-//! DATASET/depth/*.png  depth.txt  groundtruth.txt  camera.toml  [noise.toml]  [gt_depth/*.png]
+//! DATASET/depth/*.png  depth.txt  groundtruth.txt  camera.toml  [noise.toml]  [world.toml]  [gt_depth/*.png]
 //! ```
 //! Opening a dataset reads the text files and associates depth frames with poses; depth
 //! images are read on demand by [`Dataset::frame`], so large sequences stream.
@@ -10,7 +10,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use crate::error::{Error, Result, read_text};
-use crate::frames::{Camera, DepthImage, Frame, NoiseModel, Pose, moved_beyond, pose_from_tum};
+use crate::frames::{Camera, DepthImage, Frame, NoiseModel, Pose, Up, moved_beyond, pose_from_tum};
 use crate::source::depth_png::read_depth_png;
 
 /// How a dataset is opened.
@@ -49,6 +49,7 @@ pub struct Dataset {
     root: PathBuf,
     camera: Camera,
     noise: Option<Arc<NoiseModel>>,
+    up: Option<Up>,
     frames: Vec<FrameInfo>,
     unmatched: Vec<PathBuf>,
 }
@@ -75,6 +76,8 @@ impl Dataset {
         let camera = Camera::load(&camera_path)?;
         let noise_path = root.join("noise.toml");
         let noise = if noise_path.exists() { Some(Arc::new(load_noise_for(&noise_path, &camera)?)) } else { None };
+        let world_path = root.join("world.toml");
+        let up = if world_path.exists() { Some(load_up(&world_path)?) } else { None };
 
         let depth_list = root.join("depth.txt");
         let depths = parse_depth_list(&depth_list)?;
@@ -120,7 +123,12 @@ impl Dataset {
                 format!("no depth frame matched a pose within {} s", options.max_time_diff),
             ));
         }
-        Ok(Dataset { root: root.to_path_buf(), camera, noise, frames, unmatched })
+        Ok(Dataset { root: root.to_path_buf(), camera, noise, up, frames, unmatched })
+    }
+
+    /// The world's up axis, when `world.toml` declares it (`up = "+y"`).
+    pub fn up(&self) -> Option<Up> {
+        self.up
     }
 
     /// Dataset folder.
@@ -231,6 +239,17 @@ fn parse_depth_list(path: &Path) -> Result<Vec<(f64, PathBuf, usize)>> {
     }
     out.sort_by(|a, b| a.0.total_cmp(&b.0));
     Ok(out)
+}
+
+/// `world.toml`: facts about the dataset's world frame; today its up axis, `up = "+y"`.
+fn load_up(path: &Path) -> Result<Up> {
+    #[derive(serde::Deserialize)]
+    #[serde(deny_unknown_fields)]
+    struct World {
+        up: String,
+    }
+    let world: World = crate::error::parse_toml(&read_text(path)?, path)?;
+    world.up.parse().map_err(|e: Error| Error::file(path, e.to_string()))
 }
 
 fn parse_groundtruth(path: &Path) -> Result<Vec<(f64, Pose)>> {

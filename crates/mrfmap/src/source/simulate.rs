@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 
 use crate::atomic_file::write_atomic;
 use crate::error::{Error, Result};
-use crate::frames::{Camera, DepthImage, NoiseModel, Poly, Pose, pose_to_tum};
+use crate::frames::{Camera, DepthImage, NoiseModel, Poly, Pose, Up, pose_to_tum};
 use crate::source::depth_png::{quantise_depth, write_depth_png};
 use crate::source::{Dataset, DepthNoise, NoiseStatistics, Scene, noise_statistics};
 
@@ -48,7 +48,7 @@ pub struct NoisySummary {
 }
 
 /// Writes `dataset` with noisy depth to `out`: `depth/` from `noise` (seeded; frame `i` is
-/// view `i`), `gt_depth/` the input's depth, the input's timestamps, poses and camera, and
+/// view `i`), `gt_depth/` the input's depth, the input's timestamps, poses, camera and up axis, and
 /// `noise.toml` the forward model of `noise` (what the engines should map it with).
 /// `out` must not exist; the dataset is written beside it and renamed into place when complete,
 /// so a failure leaves nothing half-written. `progress` is called after each frame.
@@ -70,6 +70,7 @@ pub fn add_noise(
     let partial = out.with_file_name(format!(".{}.partial-{}", name.to_string_lossy(), std::process::id()));
     let written = (|| {
         let mut writer = DatasetWriter::create(&partial, camera, true)?;
+        writer.up = dataset.up();
         let mut statistics = Vec::with_capacity(dataset.len());
         for (i, info) in dataset.frames().iter().enumerate() {
             let clean = dataset.frame(i)?.depth;
@@ -95,10 +96,12 @@ pub fn add_noise(
 
 /// Writes a dataset in the layout [`crate::source::Dataset`] reads, frame by frame: depth
 /// PNGs (and exact ones in `gt_depth/`), then `depth.txt`, `groundtruth.txt`, `camera.toml`
-/// and, when given, `noise.toml`. What the simulator and `mrfmap export-dataset` share.
+/// and, when given, `noise.toml` and `world.toml` (the up axis). What the simulator and `mrfmap export-dataset` share.
 pub struct DatasetWriter {
     out: PathBuf,
     camera: Camera,
+    /// The world's up axis, written as `world.toml` when set.
+    pub up: Option<Up>,
     depth_list: String,
     poses: String,
     frames: usize,
@@ -117,6 +120,7 @@ impl DatasetWriter {
         Ok(DatasetWriter {
             out: out.to_path_buf(),
             camera,
+            up: None,
             depth_list: String::from("# timestamp filename\n"),
             poses: String::from("# timestamp tx ty tz qx qy qz qw\n"),
             frames: 0,
@@ -150,6 +154,9 @@ impl DatasetWriter {
         ];
         if let Some(n) = noise {
             files.push(("noise.toml", n.to_toml()));
+        }
+        if let Some(up) = self.up {
+            files.push(("world.toml", format!("up = \"{up}\"\n")));
         }
         for (name, text) in files {
             write_atomic(&self.out.join(name), |w| w.write_all(text.as_bytes()))?;

@@ -14,12 +14,13 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Result;
-use mrfmap::inference::{EngineConfig, EngineKind, new_engine};
+use mrfmap::inference::{EngineConfig, EngineKind, check_build, new_engine};
 use mrfmap::outputs::pictures::write_text;
 use mrfmap::outputs::{Series, line_plot};
 use mrfmap::source::Dataset;
 
 use super::{Method, Scores, noisy_copy, score};
+use crate::commands::build::{BUILD_ADVICE, build_map, dataset_extent};
 use crate::commands::noise::NoiseArgs;
 
 #[derive(clap::Args)]
@@ -52,23 +53,21 @@ struct Step {
 
 pub fn crm_icl(a: Args) -> Result<()> {
     let clean = Dataset::open(&a.dataset)?;
-    let (noisy, _) = noisy_copy(&clean, &a.output, &a.noise)?;
-
     let logodds_config = EngineConfig::new(EngineKind::LogOdds, a.resolution);
-    let t = Instant::now();
-    let mut reference = new_engine(&logodds_config)?;
-    let bar = crate::progress::bar(clean.len() as u64, "reference");
-    for i in 0..clean.len() {
-        reference.integrate(&clean.frame(i)?)?;
-        bar.inc(1);
-    }
-    bar.finish_and_clear();
-    let truth = reference.map();
-    let reference_seconds = t.elapsed().as_secs_f64();
-    drop(reference);
-
     let mut crm_config = EngineConfig::new(EngineKind::Crm, a.resolution);
     crm_config.crm.particles = a.particles as usize;
+    // Every frame goes into the reference and both maps: refuse before any work what would
+    // not fit.
+    let all: Vec<usize> = (0..clean.len()).collect();
+    for config in [&logodds_config, &crm_config] {
+        check_build(config, dataset_extent(&clean, &all, config)?, all.len(), BUILD_ADVICE)?;
+    }
+    let (noisy, _) = noisy_copy(&clean, &a.output, &a.noise)?;
+
+    let t = Instant::now();
+    let truth = build_map(&all, &logodds_config, |i| clean.frame(i))?.map;
+    let reference_seconds = t.elapsed().as_secs_f64();
+
     let mut crm = new_engine(&crm_config)?;
     let mut logodds = new_engine(&logodds_config)?;
     let (crm_prior, logodds_prior) = (Method::Crm(a.particles as usize).prior(), (0.5, 0.5));

@@ -3,7 +3,9 @@
 // and reports the time per frame (insertion only; PNG decoding is not timed) and the
 // number of occupied voxels at the finest resolution (pruned leaves expanded).
 //
-// usage: octomap_driver DATASET RESOLUTION [REPEAT]
+// usage: octomap_driver DATASET RESOLUTION [REPEAT [OUT.bt|- [MAX_RANGE]]]
+//   OUT.bt: also write OctoMap's map ("-": none); MAX_RANGE: insertPointCloud's maxrange in
+//   metres (default -1, none; OctoMap cuts the ray there and marks no end voxel)
 #include <octomap/octomap.h>
 #include <png.h>
 
@@ -70,12 +72,14 @@ static std::vector<uint16_t> read_png16(const std::string& path, int w, int h) {
 
 int main(int argc, char** argv) {
   if (argc < 3) {
-    std::cerr << "usage: octomap_driver DATASET RESOLUTION [REPEAT [OUT.bt]]\n";
+    std::cerr << "usage: octomap_driver DATASET RESOLUTION [REPEAT [OUT.bt|- [MAX_RANGE]]]\n";
     return 2;
   }
   std::string root = argv[1];
   double res = std::stod(argv[2]);
   int repeat = argc > 3 ? std::stoi(argv[3]) : 1;
+  std::string out = argc > 4 ? argv[4] : "-";
+  double max_range = argc > 5 ? std::stod(argv[5]) : -1.0;
   auto cam = read_camera(root + "/camera.toml");
   int w = (int)cam["width"], h = (int)cam["height"];
   double fx = cam["fx"], fy = cam["fy"], cx = cam["cx"], cy = cam["cy"], scale = cam["depth_scale"];
@@ -118,7 +122,7 @@ int main(int argc, char** argv) {
   for (int r = 0; r < repeat; r++) {
     tree.clear();
     auto t0 = std::chrono::steady_clock::now();
-    for (size_t k = 0; k < clouds.size(); k++) tree.insertPointCloud(clouds[k], origins[k], -1.0);
+    for (size_t k = 0; k < clouds.size(); k++) tree.insertPointCloud(clouds[k], origins[k], max_range);
     double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     best = std::min(best, secs);
     occupied = leaves = 0;
@@ -132,8 +136,8 @@ int main(int argc, char** argv) {
   }
   std::printf("%g\t%.2f\t%zu\t%zu\n", res, best * 1e3 / clouds.size(), occupied, leaves);
   // Optionally OctoMap's own map of the frames, for comparing exported files.
-  if (argc > 4 && !tree.writeBinary(argv[4])) {
-    std::cerr << "cannot write " << argv[4] << "\n";
+  if (out != "-" && !tree.writeBinary(out)) {
+    std::cerr << "cannot write " << out << "\n";
     return 1;
   }
   return 0;

@@ -366,7 +366,7 @@ impl RowMarker {
     }
 
     fn mark_ray(&mut self, ray: &PixelRay, resolution: f64, limits: &RayLimits) {
-        let Some(seg) = limits.segment(ray, 0.0) else { return };
+        let Some(seg) = limits.hit_miss_segment(ray, resolution) else { return };
         // Every crossed voxel is marked free, the last one (holding the endpoint) also
         // occupied when the ray reached its surface: occupied wins when the scan is applied.
         let mut current: Option<(BrickKey, usize)> = None;
@@ -452,7 +452,19 @@ mod tests {
         let mut e = LogOddsEngine::new(0.1, limits, LogOddsParams::default()).unwrap();
         e.integrate(&wall_frame(2.0, 1, 1)).unwrap();
         assert!(e.log_odds().iter().all(|(_, l)| *l < 0.0), "max-range rays carry no hit");
-        assert_eq!(e.log_odds().len(), 11);
+        // Cut at x = 1.013, in voxel 10: OctoMap traces to the cut point without its voxel.
+        let keys: Vec<i32> = e.log_odds().iter().map(|(k, _)| k.0[0]).collect();
+        assert_eq!((keys.len(), keys.iter().max()), (10, Some(&9)), "{keys:?}");
+        // Walking and projecting agree on it.
+        let params = LogOddsParams { marking: Marking::Walk, ..Default::default() };
+        let mut walked = LogOddsEngine::new(0.1, limits, params).unwrap();
+        walked.integrate(&wall_frame(2.0, 1, 1)).unwrap();
+        assert_eq!(walked.log_odds().len(), 10);
+        // A cut end in the camera's own voxel leaves OctoMap nothing to mark.
+        let short = RayLimits { max_range: Some(0.05), bounds: None };
+        let mut e = LogOddsEngine::new(0.1, short, LogOddsParams::default()).unwrap();
+        e.integrate(&wall_frame(2.0, 1, 1)).unwrap();
+        assert!(e.log_odds().is_empty());
     }
 
     #[test]

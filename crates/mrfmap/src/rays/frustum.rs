@@ -98,8 +98,9 @@ impl Projector {
     }
 
     /// The voxels of grid resolution `resolution` that the valid pixels of `frame` cross
-    /// within `limits` (each segment from its start to its end, the end voxel included), and
-    /// the voxels holding the segment ends that are measured surfaces.
+    /// within `limits` (OctoMap's segments, [`RayLimits::hit_miss_segment`], each from its
+    /// start to its end, the end voxel included), and the voxels holding the segment ends that
+    /// are measured surfaces.
     pub fn crossed_voxels(&mut self, frame: &Frame, limits: &RayLimits, resolution: f64) -> CrossedVoxels {
         let rays = FrameRays::with_camera_rays(frame, &mut self.camera_rays);
         let ends = self.segments.fill(&rays, limits, resolution);
@@ -152,7 +153,7 @@ fn walk_brick(
     for v in rect.v0..rect.v1 + 1 {
         for u in rect.u0..rect.u1 + 1 {
             let Some(ray) = rays.ray(u as u32, v as u32) else { continue };
-            let Some(seg) = limits.segment(&ray, 0.0) else { continue };
+            let Some(seg) = limits.hit_miss_segment(&ray, resolution) else { continue };
             let Some((a, b)) = bounds.clip(ray.origin, ray.dir, seg.start, seg.end) else { continue };
             for_each_crossing(ray.origin, ray.dir, a, b, resolution, |c| {
                 // The clipped ends lie on the brick's faces: rounding may put a neighbour's
@@ -311,7 +312,7 @@ impl Segments {
                 pixels[next_u..u].fill(PixelSegment::NONE);
                 depths[next_u..u].fill(Bounds::NO_SEGMENT);
                 next_u = u + 1;
-                let Some(seg) = limits.segment(&ray, 0.0) else {
+                let Some(seg) = limits.hit_miss_segment(&ray, resolution) else {
                     (pixels[u], depths[u]) = (PixelSegment::NONE, Bounds::NO_SEGMENT);
                     continue;
                 };
@@ -842,7 +843,7 @@ mod tests {
         let (mut set, mut ends) = (BTreeSet::new(), BTreeSet::new());
         for v in 0..rays.rows() {
             for ray in rays.row(v) {
-                let Some(seg) = limits.segment(&ray, 0.0) else { continue };
+                let Some(seg) = limits.hit_miss_segment(&ray, r) else { continue };
                 let mut last = None;
                 for_each_crossing(ray.origin, ray.dir, seg.start, seg.end, r, |c| {
                     set.insert(c.key);

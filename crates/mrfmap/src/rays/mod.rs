@@ -71,12 +71,18 @@ pub fn pose_parts(pose: &Pose) -> (Matrix3<f64>, [f64; 3]) {
 /// The camera-frame unit ray and its z = 1 norm for every pixel of one camera, computed
 /// once (the square root and divisions were a quarter of the per-pixel setup of log-odds
 /// projection). [`FrameRays::with_camera_rays`] uses them; the rays are bit for bit those of
-/// [`pixel_direction`].
+/// [`pixel_direction`]. Per pixel only the norm and its reciprocal are kept (16 bytes; the
+/// unit ray itself, 40 bytes with them, was a third of a 640 x 480 projection's peak memory):
+/// the unit ray is `(x(u) / n, y(v) / n, 1 / n)`, rebuilt from the per-column `x` and per-row
+/// `y` with two multiplications, the same arithmetic as [`unit_ray`].
 #[derive(Clone, Debug, Default)]
 pub struct CameraRays {
     camera: Option<Camera>,
-    /// Unit ray, z = 1 norm, and its reciprocal (the ray's z component).
-    rays: Vec<(Vector3<f64>, f64, f64)>,
+    /// Camera ray `x` per column and `y` per row (`z = 1`).
+    xs: Vec<f64>,
+    ys: Vec<f64>,
+    /// Per pixel: the z = 1 norm, and its reciprocal (the unit ray's z component).
+    norms: Vec<(f64, f64)>,
 }
 
 impl CameraRays {
@@ -86,14 +92,26 @@ impl CameraRays {
             // The camera ray of pixel (u, v) is (x(u), y(v), 1): a division per column and
             // per row instead of two per pixel, and the same values as `Camera::pixel_ray`.
             let ray = |u, v| camera.pixel_ray(u as f64, v as f64);
-            let xs: Vec<f64> = (0..camera.width).map(|u| ray(u, 0).x).collect();
-            let ys: Vec<f64> = (0..camera.height).map(|v| ray(0, v).y).collect();
-            let width = camera.width as usize;
-            self.rays =
-                (0..camera.pixel_count()).into_par_iter().map(|i| unit_ray(xs[i % width], ys[i / width])).collect();
+            self.xs = (0..camera.width).map(|u| ray(u, 0).x).collect();
+            self.ys = (0..camera.height).map(|v| ray(0, v).y).collect();
+            let (xs, ys, width) = (&self.xs, &self.ys, camera.width as usize);
+            self.norms = (0..camera.pixel_count())
+                .into_par_iter()
+                .map(|i| {
+                    let (_, norm, inv) = unit_ray(xs[i % width], ys[i / width]);
+                    (norm, inv)
+                })
+                .collect();
             self.camera = Some(*camera);
         }
         self
+    }
+
+    /// The unit ray of pixel `(u, v)`, its z = 1 norm and the ray's z component.
+    #[inline(always)]
+    fn get(&self, u: u32, v: u32, width: usize) -> (Vector3<f64>, f64, f64) {
+        let (norm, inv) = self.norms[v as usize * width + u as usize];
+        (Vector3::new(self.xs[u as usize] * inv, self.ys[v as usize] * inv, inv), norm, inv)
     }
 }
 
@@ -152,7 +170,7 @@ impl<'a> FrameRays<'a> {
         }
         let (dir, norm, cz) = match self.camera_rays {
             Some(c) => {
-                let (d, norm, cz) = c.rays[v as usize * self.frame.camera.width as usize + u as usize];
+                let (d, norm, cz) = c.get(u, v, self.frame.camera.width as usize);
                 let d = self.rotation * d;
                 ([d.x, d.y, d.z], norm, cz)
             }
@@ -434,6 +452,36 @@ impl RayLimits {
             seg.end = e;
         }
         Some(seg)
+    }
+
+    /// The segment OctoMap's `insertPointCloud` marks for `ray` in a grid of voxel edge
+    /// `resolution`: [`RayLimits::segment`], except that a ray cut at the max range (or a beam
+    /// without a return, which ends at the sensor's range) stops where it enters the voxel
+    /// holding its cut end. OctoMap traces such a ray to the cut point with `computeRayKeys`,
+    /// which leaves out the end point's voxel; a ray that reaches its surface marks every voxel
+    /// up to and including the surface's. `None` when nothing is left (the cut end lies in
+    /// the camera's voxel: OctoMap's ray is then empty). A segment that the bounds cut keeps
+    /// its end voxel (bounds are mrfmap's, not OctoMap's).
+    #[inline]
+    pub fn hit_miss_segment(&self, ray: &PixelRay, resolution: f64) -> Option<Segment> {
+        let mut seg = self.segment(ray, 0.0)?;
+        let cut_end = self.max_range.map_or(ray.range, |m| m.min(ray.range));
+        if seg.hits_surface || seg.end != cut_end {
+            return Some(seg);
+        }
+        // Where the ray enters the end voxel: the last of the faces it crosses to get there.
+        let mut enter = f64::NEG_INFINITY;
+        for a in 0..3 {
+            if ray.dir[a] != 0.0 {
+                let k = ((ray.origin[a] + seg.end * ray.dir[a]) / resolution).floor();
+                let face = if ray.dir[a] > 0.0 { k } else { k + 1.0 };
+                enter = enter.max((face * resolution - ray.origin[a]) / ray.dir[a]);
+            }
+        }
+        // A ten-thousandth of a voxel short of that face, so that rounding (the projection's
+        // slab tests are in f32) never puts a sliver of the end voxel back.
+        seg.end = seg.end.min(enter - 1e-4 * resolution);
+        (seg.end > seg.start).then_some(seg)
     }
 }
 

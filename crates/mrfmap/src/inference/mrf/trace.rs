@@ -33,6 +33,10 @@ struct Traced {
 /// Messages are kept away from 0 and 1 so that their log-odds stay finite.
 const MSG_EPS: f64 = 1e-6;
 
+/// Crossings shorter than this many voxel edges are rounding slivers at brick faces (see
+/// [`MrfEngine::trace_tile`]); real ones are longer than a micrometre in a metre-sized voxel.
+const SLIVER: f64 = 1e-9;
+
 /// Largest pixel stride of [`MrfParams::ray_spacing`] (a divisor of [`TILE`]).
 const MAX_STRIDE: u32 = 8;
 
@@ -343,6 +347,14 @@ impl MrfEngine {
                         return ControlFlow::Continue(()); // unallocated: skipped, as the reference does
                     };
                     voxels.crossings(b.s_in, b.s_out, |c| {
+                        // A brick's walk starts on its face, and rounding may start it in the
+                        // voxel before, for a sliver of a length (8% of the crossings at
+                        // 0.02 m). Often that voxel is the one the ray has just crossed, which
+                        // its factor would then hold twice; any voxel in its chain is a place
+                        // the surface could be. A sliver carries no length: it is skipped.
+                        if c.length() * inv_r < SLIVER {
+                            return ControlFlow::Continue(());
+                        }
                         // (A voxel of another brick: rounding at a brick face.)
                         let inside = c.key.brick() == key;
                         let s = if inside { sums.get(c.key.slot()) } else { self.sums.get(c.key) };

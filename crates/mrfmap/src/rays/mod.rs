@@ -74,7 +74,7 @@ pub fn pose_parts(pose: &Pose) -> (Matrix3<f64>, [f64; 3]) {
 /// [`pixel_direction`]. Per pixel only the norm and its reciprocal are kept (16 bytes; the
 /// unit ray itself, 40 bytes with them, was a third of a 640 x 480 projection's peak memory):
 /// the unit ray is `(x(u) / n, y(v) / n, 1 / n)`, rebuilt from the per-column `x` and per-row
-/// `y` with two multiplications, the same arithmetic as [`unit_ray`].
+/// `y` with two multiplications, the same arithmetic as `unit_ray`.
 #[derive(Clone, Debug, Default)]
 pub struct CameraRays {
     camera: Option<Camera>,

@@ -19,7 +19,7 @@ use mrfmap::outputs::{
     query_polyline, query_segments, write_octomap, write_ply,
 };
 use mrfmap::rays::{Aabb, RayLimits};
-use mrfmap::source::bag::{Bag, BagOptions, bag_frames};
+use mrfmap::source::bag::{Bag, BagOptions, depth_index, for_each_frame};
 use nalgebra::{Matrix3, Rotation3, Translation3, UnitQuaternion};
 use numpy::{PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2};
 use pyo3::exceptions::{PyMemoryError, PyOSError, PyValueError};
@@ -276,15 +276,23 @@ impl Mapper {
         max_pose_gap: f64,
     ) -> PyResult<usize> {
         let options = BagOptions { depth_topic, camera_info_topic, fixed_frame, pose_topic, max_pose_gap };
-        let (frames, _skipped) = py.detach(|| bag_frames(&Bag::open(&path)?, &options, None)).map_err(py_err)?;
-        let Some(first) = frames.first() else {
+        // Two passes, streamed: the camera, poses and image headers first, then the images one
+        // at a time (memory holds a few, whatever the bag's size).
+        let (bag, index) = py
+            .detach(|| {
+                let bag = Bag::open(&path)?;
+                let index = depth_index(&bag, &options, None, 0)?;
+                Ok::<_, mrfmap::Error>((bag, index))
+            })
+            .map_err(py_err)?;
+        if index.frames.is_empty() {
             return Err(PyValueError::new_err(format!(
                 "{}: no image of {} has a pose",
                 path.display(),
                 options.depth_topic
             )));
-        };
-        let (c, m) = (first.camera, self.camera);
+        }
+        let (c, m) = (index.camera, self.camera);
         if (c.fx, c.fy, c.cx, c.cy, c.width, c.height) != (m.fx, m.fy, m.cx, m.cy, m.width, m.height) {
             return Err(PyValueError::new_err(format!(
                 "{}: the bag's camera (fx {}, fy {}, cx {}, cy {}, {}x{}) is not this mapper's",
@@ -298,11 +306,10 @@ impl Mapper {
             )));
         }
         let start = *self.frames.lock().unwrap_or_else(|p| p.into_inner());
-        let n = frames.len();
         let mut added = 0;
         let result = py.detach(|| {
             let mut inner = self.lock();
-            for mut frame in frames {
+            for_each_frame(&bag, &index, |mut frame| {
                 frame.index = start + added;
                 frame.noise = self.noise.clone();
                 match &mut *inner {
@@ -310,13 +317,13 @@ impl Mapper {
                     Inner::Online(e) => e.integrate(&frame)?,
                 }
                 added += 1;
-            }
-            Ok::<(), mrfmap::Error>(())
+                Ok(std::ops::ControlFlow::Continue(()))
+            })
         });
         // Frames added before an error still count.
         *self.frames.lock().unwrap_or_else(|p| p.into_inner()) = start + added;
         result.map_err(py_err)?;
-        Ok(n)
+        Ok(added)
     }
 
     /// Adds a range scan: beam directions (N, 3) in the sensor frame, ranges (N,) in metres

@@ -16,7 +16,7 @@ use mrfmap::inference::{
 use mrfmap::map::Map;
 use mrfmap::rays::{Aabb, RayLimits};
 #[cfg(feature = "bags")]
-use mrfmap::source::bag::{Bag, BagOptions, bag_frames, bag_scans};
+use mrfmap::source::bag::{Bag, BagFrames, BagOptions, bag_frames, bag_scans, depth_index};
 use mrfmap::source::{BeamSpacing, CarmenLog, CarmenOptions, Dataset, Misses};
 use std::io::Write;
 
@@ -251,20 +251,62 @@ impl BagArgs {
         }
     }
 
+    /// The options of a depth-image build (`--depth-topic` is required), and the noise model.
+    #[cfg(feature = "bags")]
+    fn depth_options(&self, noise: Option<&std::path::Path>) -> Result<(BagOptions, Option<NoiseModel>)> {
+        let depth_topic =
+            self.depth_topic.clone().context("a bag needs --depth-topic or --scan-topic (see `mrfmap bag info`)")?;
+        Ok((self.options(depth_topic), noise.map(NoiseModel::load).transpose()?))
+    }
+
     /// The bag's depth frames with poses; skipped images are summarised in a warning.
     pub fn frames(&self, path: &std::path::Path, noise: Option<&std::path::Path>) -> Result<Vec<Frame>> {
         #[cfg(not(feature = "bags"))]
         return Err(without_bags(path, noise));
         #[cfg(feature = "bags")]
         {
-            let depth_topic = self
-                .depth_topic
-                .clone()
-                .context("a bag needs --depth-topic or --scan-topic (see `mrfmap bag info`)")?;
-            let options = self.options(depth_topic);
-            let noise = noise.map(NoiseModel::load).transpose()?;
+            let (options, noise) = self.depth_options(noise)?;
             let (frames, skipped) = bag_frames(&Bag::open(path)?, &options, noise)?;
             posed(path, &options.depth_topic, frames, &skipped)
+        }
+    }
+
+    /// Builds with `build` from the bag's posed depth images, streamed: a first pass reads
+    /// the camera, the poses and every image's header (and decodes a few images for the
+    /// memory estimate), then the chosen frames are decoded one at a time as `build` takes
+    /// them, so memory holds a few images whatever the bag's size. Returns the build and the
+    /// frames used.
+    pub fn build_streamed(
+        &self,
+        path: &std::path::Path,
+        noise: Option<&std::path::Path>,
+        (frames, exclude): (&[usize], &[usize]),
+        config: &EngineConfig,
+        build: &mut FrameBuild<'_>,
+    ) -> Result<(BuildReport, Vec<usize>)> {
+        #[cfg(not(feature = "bags"))]
+        return Err(without_bags(path, (noise, frames, exclude, config, build)));
+        #[cfg(feature = "bags")]
+        {
+            let (bag_options, noise) = self.depth_options(noise)?;
+            let bag = Bag::open(path)?;
+            let index = depth_index(&bag, &bag_options, noise, SAMPLE_FRAMES)?;
+            let all: Vec<usize> = (0..index.frames.len()).collect();
+            posed(path, &bag_options.depth_topic, all, &index.skipped)?;
+            let indices = select_frames(index.frames.len(), frames, exclude)?;
+            let positions = indices.iter().map(|&i| index.frames[i].1.translation.vector.into());
+            let extent = frames_extent(positions, &index.sample, indices.len(), config);
+            check_build(config, extent, indices.len(), BUILD_ADVICE)?;
+            tracing::info!(
+                "{}: {} of {} depth images, engine {}, resolution {} m (streamed)",
+                path.display(),
+                indices.len(),
+                index.frames.len(),
+                config.kind.name(),
+                config.resolution
+            );
+            let mut frames = BagFrames::new(bag, Arc::new(index));
+            Ok((build(&indices, &mut |i| frames.frame(i))?, indices))
         }
     }
 
@@ -285,6 +327,10 @@ impl BagArgs {
         }
     }
 }
+
+/// A build from the frames `indices`, each fetched by index (in ascending order).
+pub type FrameBuild<'a> =
+    dyn FnMut(&[usize], &mut dyn FnMut(usize) -> mrfmap::Result<Frame>) -> Result<BuildReport> + 'a;
 
 /// The error for a bag given to a binary built without the `bags` feature (`_unused`: the
 /// arguments only a bag reader would read).
@@ -598,20 +644,10 @@ pub fn run(a: Args) -> Result<()> {
         tracing::info!("{}: {} of {} scans, engine {kind}", a.dataset.display(), indices.len(), scans.len());
         (build_map(&indices, &config, |i| Ok(scans[i].clone()))?, indices)
     } else if BagArgs::is_bag(&a.dataset) {
-        let frames = a.bag.frames(&a.dataset, a.options.noise.as_deref())?;
-        let indices = select_frames(frames.len(), &a.frames, &a.exclude)?;
-        let step = indices.len().div_ceil(SAMPLE_FRAMES).max(1);
-        let sampled: Vec<Frame> = indices.iter().step_by(step).map(|&i| frames[i].clone()).collect();
-        let positions = indices.iter().map(|&i| frames[i].pose.translation.vector.into());
-        check_build(&config, frames_extent(positions, &sampled, indices.len(), &config), indices.len(), BUILD_ADVICE)?;
-        tracing::info!(
-            "{}: {} of {} depth images, engine {kind}, resolution {} m",
-            a.dataset.display(),
-            indices.len(),
-            frames.len(),
-            a.resolution
-        );
-        (build(&indices, &mut |i| Ok(frames[i].clone()))?, indices)
+        let pick = (a.frames.as_slice(), a.exclude.as_slice());
+        a.bag.build_streamed(&a.dataset, a.options.noise.as_deref(), pick, &config, &mut |indices, reading| {
+            build(indices, reading)
+        })?
     } else if a.dataset.is_file() {
         let log = a.laser.open(&a.dataset)?;
         let scans = a.laser.scans(&log, a.resolution, a.options.noise.as_deref())?;

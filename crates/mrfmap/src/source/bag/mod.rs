@@ -12,8 +12,14 @@
 //! pose topic, interpolated at the image's stamp. The ROS optical frame (z forward, x right,
 //! y down) is mrfmap's camera frame, so poses are used as they are. Images without a pose
 //! within the allowed gap are reported and skipped.
+//!
+//! Every format is read forward a chunk or a row at a time ([`Bag::for_each`]), so a bag of
+//! any size streams. Depth frames take two passes: [`depth_index`] reads the small messages
+//! (camera info, poses) and each image's header, and [`for_each_frame`] / [`BagFrames`] then
+//! decode the images one at a time in stamp order; [`bag_frames`] collects them all.
 
 pub mod cdr;
+mod mcap_reader;
 pub mod msgs;
 mod ros1;
 pub mod tf;
@@ -90,26 +96,7 @@ impl Bag {
                 ros1::for_each(file, topics, &mut |t, ty, time, data| visit(t, ty, time, data, Encoding::Ros1))?;
                 continue;
             }
-            // The file is read whole (MCAP's reader wants a slice); say so before trying.
-            let size = std::fs::metadata(file).map_err(|e| Error::io(file, e))?.len();
-            crate::limits::check_memory(&format!("reading {}", file.display()), size as f64, "split the bag")?;
-            let bytes = std::fs::read(file).map_err(|e| Error::io(file, e))?;
-            let stream = mcap::MessageStream::new(&bytes).map_err(|e| Error::file(file, format!("not MCAP: {e}")))?;
-            for m in stream {
-                let m = m.map_err(|e| Error::file(file, format!("corrupt or truncated MCAP: {e}")))?;
-                let topic = m.channel.topic.as_str();
-                if !topics.is_empty() && !topics.contains(&topic) {
-                    continue;
-                }
-                let msgtype = m.channel.schema.as_ref().map_or("", |s| s.name.as_str());
-                if m.channel.message_encoding != "cdr" {
-                    return Err(Error::file(
-                        file,
-                        format!("{topic}: message encoding {:?} is not CDR (a ROS 2 bag?)", m.channel.message_encoding),
-                    ));
-                }
-                visit(topic, msgtype, m.log_time as f64 * 1e-9, &m.data, Encoding::Cdr)?;
-            }
+            mcap_reader::for_each(file, topics, &mut |t, ty, time, data| visit(t, ty, time, data, Encoding::Cdr))?;
         }
         Ok(())
     }
@@ -135,16 +122,20 @@ impl Bag {
     pub fn tf(&self) -> Result<tf::TfBuffer> {
         let mut buffer = tf::TfBuffer::default();
         self.for_each(&["/tf", "/tf_static"], |topic, _, _, data, encoding| {
-            let entries =
-                msgs::tf_message(data, encoding).map_err(|m| Error::file(&self.path, format!("{topic}: {m}")))?;
-            for (h, child, t) in entries {
-                buffer.insert(&h.frame_id, &child, h.stamp, &t, topic == "/tf_static");
-            }
-            Ok(())
+            insert_tf(&mut buffer, self, topic, data, encoding)
         })?;
         buffer.finish();
         Ok(buffer)
     }
+}
+
+/// Adds one `/tf` or `/tf_static` message's transforms to `buffer`.
+fn insert_tf(buffer: &mut tf::TfBuffer, bag: &Bag, topic: &str, data: &[u8], encoding: Encoding) -> Result<()> {
+    let entries = msgs::tf_message(data, encoding).map_err(|m| Error::file(&bag.path, format!("{topic}: {m}")))?;
+    for (h, child, t) in entries {
+        buffer.insert(&h.frame_id, &child, h.stamp, &t, topic == "/tf_static");
+    }
+    Ok(())
 }
 
 /// The messages of a ROS 2 sqlite3 bag file (`topics` and `messages` tables), in time order.
@@ -210,39 +201,79 @@ pub fn sibling_camera_info(image_topic: &str) -> String {
 
 /// A function giving a frame's pose in the fixed frame at a stamp: from the TF tree, or from
 /// the pose topic (the sensor's pose, whatever the frame).
-type PoseSource = Box<dyn Fn(&str, f64) -> std::result::Result<Pose, String>>;
+type PoseSource = Box<dyn Fn(&str, f64) -> std::result::Result<Pose, String> + Send + Sync>;
 
-fn pose_source(bag: &Bag, options: &BagOptions) -> Result<PoseSource> {
-    let bad = |m: String| Error::file(&bag.path, m);
-    Ok(match (&options.pose_topic, &options.fixed_frame) {
-        (Some(topic), _) => {
-            let mut series = tf::Series::default();
-            bag.for_each(&[topic.as_str()], |t, msgtype, _, data, encoding| {
+/// What poses are read from, gathered message by message ([`Poses::accept`]) in a pass over
+/// the bag, then turned into a [`PoseSource`] ([`Poses::finish`]).
+enum Poses {
+    /// Samples of the pose topic.
+    Topic { topic: String, series: tf::Series },
+    /// `/tf` and `/tf_static`, looked up in `fixed`.
+    Tf { fixed: String, buffer: tf::TfBuffer },
+}
+
+impl Poses {
+    fn new(options: &BagOptions) -> Result<Self> {
+        Ok(match (&options.pose_topic, &options.fixed_frame) {
+            (Some(topic), _) => Poses::Topic { topic: topic.clone(), series: tf::Series::default() },
+            (None, Some(fixed)) => Poses::Tf { fixed: fixed.clone(), buffer: tf::TfBuffer::default() },
+            (None, None) => {
+                return Err(Error::Invalid("a bag needs --fixed-frame (poses from /tf) or --pose-topic".into()));
+            }
+        })
+    }
+
+    /// The topics the poses come from.
+    fn topics(&self) -> Vec<&str> {
+        match self {
+            Poses::Topic { topic, .. } => vec![topic.as_str()],
+            Poses::Tf { .. } => vec!["/tf", "/tf_static"],
+        }
+    }
+
+    /// Takes in one message of [`Poses::topics`].
+    fn accept(&mut self, bag: &Bag, topic: &str, msgtype: &str, data: &[u8], encoding: Encoding) -> Result<()> {
+        let bad = |m: String| Error::file(&bag.path, format!("{topic}: {m}"));
+        match self {
+            Poses::Topic { series, .. } => {
                 // Odometry and TransformStamped both put a child frame id before the pose.
                 let odometry = msgtype.contains("Odometry") || msgtype.contains("TransformStamped");
-                let (h, p) = msgs::pose(data, encoding, odometry).map_err(|m| bad(format!("{t}: {m}")))?;
+                let (h, p) = msgs::pose(data, encoding, odometry).map_err(bad)?;
                 series.push(h.stamp, &p);
-                Ok(())
-            })?;
-            if series.is_empty() {
-                return Err(bad(format!("no messages on the pose topic {topic}")));
             }
-            series.sort();
-            let gap = options.max_pose_gap;
-            Box::new(move |_, t| series.at(t, gap))
+            Poses::Tf { buffer, .. } => insert_tf(buffer, bag, topic, data, encoding)?,
         }
-        (None, Some(fixed)) => {
-            let tf = bag.tf()?;
-            if tf.frames().is_empty() {
-                return Err(bad("no transforms on /tf or /tf_static: name a --pose-topic".into()));
+        Ok(())
+    }
+
+    fn finish(self, bag: &Bag, max_gap: f64) -> Result<PoseSource> {
+        let bad = |m: String| Error::file(&bag.path, m);
+        Ok(match self {
+            Poses::Topic { topic, mut series } => {
+                if series.is_empty() {
+                    return Err(bad(format!("no messages on the pose topic {topic}")));
+                }
+                series.sort();
+                Box::new(move |_, t| series.at(t, max_gap))
             }
-            let (fixed, gap) = (fixed.clone(), options.max_pose_gap);
-            Box::new(move |frame, t| tf.lookup(&fixed, frame, t, gap))
-        }
-        (None, None) => {
-            return Err(Error::Invalid("a bag needs --fixed-frame (poses from /tf) or --pose-topic".into()));
-        }
-    })
+            Poses::Tf { fixed, mut buffer } => {
+                buffer.finish();
+                if buffer.frames().is_empty() {
+                    return Err(bad("no transforms on /tf or /tf_static: name a --pose-topic".into()));
+                }
+                Box::new(move |frame, t| buffer.lookup(&fixed, frame, t, max_gap))
+            }
+        })
+    }
+}
+
+fn pose_source(bag: &Bag, options: &BagOptions) -> Result<PoseSource> {
+    let mut poses = Poses::new(options)?;
+    let topics = poses.topics();
+    let topics: Vec<String> = topics.into_iter().map(String::from).collect();
+    let topics: Vec<&str> = topics.iter().map(String::as_str).collect();
+    bag.for_each(&topics, |t, msgtype, _, data, encoding| poses.accept(bag, t, msgtype, data, encoding))?;
+    poses.finish(bag, options.max_pose_gap)
 }
 
 /// Range scans of the `sensor_msgs/LaserScan` or `sensor_msgs/PointCloud2` topic `topic`
@@ -301,79 +332,271 @@ pub fn bag_scans(
     Ok((scans.collect(), skipped))
 }
 
-/// Depth frames of `options.depth_topic` with poses; also the images skipped and why.
-pub fn bag_frames(bag: &Bag, options: &BagOptions, noise: Option<NoiseModel>) -> Result<(Vec<Frame>, Vec<String>)> {
+/// What a first pass over a bag finds about its depth images, without keeping them: the
+/// camera, the stamp and pose of every image that has one (in stamp order: frame `i` of the
+/// bag is the `i`-th of them), the images skipped and why, and a few decoded frames spread
+/// over the bag (for estimates). [`for_each_frame`] and [`BagFrames`] then stream the images
+/// themselves.
+pub struct DepthIndex {
+    /// The camera (from the first `CameraInfo`).
+    pub camera: Camera,
+    /// Stamp and pose of each posed image, in stamp order (log order among equal stamps).
+    pub frames: Vec<(f64, Pose)>,
+    /// Per posed image in log order, its frame index (its place in stamp order).
+    order: Vec<usize>,
+    /// Images without a pose, and why.
+    pub skipped: Vec<String>,
+    /// Up to about `sample` decoded frames, evenly spread over the posed ones.
+    pub sample: Vec<Frame>,
+    poses: std::sync::Arc<PoseSource>,
+    options: BagOptions,
+    noise: Option<std::sync::Arc<NoiseModel>>,
+}
+
+/// The decoder of an image topic's message type.
+fn image_decoder(bag: &Bag, topic: &str, msgtype: &str) -> Result<msgs::DecodeImage> {
+    match msgtype {
+        "sensor_msgs/msg/Image" | "" => Ok(msgs::depth_image),
+        "sensor_msgs/msg/CompressedImage" => Ok(msgs::compressed_depth),
+        other => Err(Error::file(
+            &bag.path,
+            format!("{topic} carries {other}, not sensor_msgs/msg/Image or CompressedImage"),
+        )),
+    }
+}
+
+/// Reads the camera, the poses and every depth image's header of `options.depth_topic` in one
+/// pass; memory holds the poses (small messages) and `sample` images, not the images.
+pub fn depth_index(bag: &Bag, options: &BagOptions, noise: Option<NoiseModel>, sample: usize) -> Result<DepthIndex> {
     let bad = |m: String| Error::file(&bag.path, m);
     let info_topic = options.camera_info_topic.clone().unwrap_or_else(|| sibling_camera_info(&options.depth_topic));
+    let mut poses = Poses::new(options)?;
+    let pose_topics: Vec<String> = poses.topics().into_iter().map(String::from).collect();
+    let mut topics: Vec<&str> = pose_topics.iter().map(String::as_str).collect();
+    topics.extend([info_topic.as_str(), options.depth_topic.as_str()]);
     let mut camera = None;
-    bag.for_each(&[info_topic.as_str()], |topic, _, _, data, encoding| {
-        if camera.is_none() {
-            let (_, w, h, k) = msgs::camera_info(data, encoding).map_err(|m| bad(format!("{topic}: {m}")))?;
-            camera = Some(Camera::new(k[0], k[4], k[2], k[5], w, h, 1000.0).map_err(|e| bad(format!("{topic}: {e}")))?);
+    let mut headers = Vec::new();
+    // Every `stride`-th image, decoded; the stride doubles (and every other kept image goes)
+    // whenever more than twice `sample` are held, so they stay evenly spread and few.
+    let (mut kept, mut stride) = (Vec::new(), 1usize);
+    let mut last_stamp = f64::NEG_INFINITY;
+    bag.for_each(&topics, |topic, msgtype, _, data, encoding| {
+        if topic == options.depth_topic {
+            let n = headers.len() + 1;
+            let decode = image_decoder(bag, topic, msgtype)?;
+            let h = msgs::image_header(data, encoding).map_err(|m| bad(format!("{topic}: image {n}: {m}")))?;
+            if h.stamp < last_stamp {
+                tracing::warn!("{topic}: image {n} is stamped before the one logged before it");
+            }
+            last_stamp = last_stamp.max(h.stamp);
+            if (n - 1) % stride == 0 && sample > 0 {
+                let (_, depth) = decode(data, encoding).map_err(|m| bad(format!("{topic}: image {n}: {m}")))?;
+                kept.push((n - 1, depth));
+                if kept.len() > 2 * sample {
+                    stride *= 2;
+                    kept.retain(|(i, _)| i % stride == 0);
+                }
+            }
+            headers.push(h);
+        } else if topic == info_topic {
+            if camera.is_none() {
+                let (_, w, h, k) = msgs::camera_info(data, encoding).map_err(|m| bad(format!("{topic}: {m}")))?;
+                camera =
+                    Some(Camera::new(k[0], k[4], k[2], k[5], w, h, 1000.0).map_err(|e| bad(format!("{topic}: {e}")))?);
+            }
+        } else {
+            poses.accept(bag, topic, msgtype, data, encoding)?;
         }
         Ok(())
     })?;
+    if headers.is_empty() {
+        return Err(bad(format!("no messages on {}", options.depth_topic)));
+    }
     let camera =
         camera.ok_or_else(|| bad(format!("no CameraInfo on {info_topic} (name it with --camera-info-topic)")))?;
-    let poses = pose_source(bag, options)?;
+    let poses = poses.finish(bag, options.max_pose_gap)?;
     let noise = noise.map(std::sync::Arc::new);
-    let (mut frames, mut skipped) = (Vec::new(), Vec::new());
-    let mut images = 0;
-    let mut last_stamp = f64::NEG_INFINITY;
-    bag.for_each(&[options.depth_topic.as_str()], |topic, msgtype, _, data, encoding| {
-        let decode = match msgtype {
-            "sensor_msgs/msg/Image" | "" => msgs::depth_image,
-            "sensor_msgs/msg/CompressedImage" => msgs::compressed_depth,
-            other => return Err(bad(format!("{topic} carries {other}, not sensor_msgs/msg/Image or CompressedImage"))),
-        };
+    let (mut frames, mut skipped, mut posed) = (Vec::new(), Vec::new(), Vec::with_capacity(headers.len()));
+    for (n, h) in headers.iter().enumerate() {
+        match poses(&h.frame_id, h.stamp) {
+            Ok(pose) => {
+                posed.push(Some(frames.len()));
+                frames.push((h.stamp, pose));
+            }
+            Err(why) => {
+                posed.push(None);
+                skipped.push(format!("image {} at {:.3} s: {why}", n + 1, h.stamp));
+            }
+        }
+    }
+    // Frames go in stamp order, as a dataset's do. Images logged out of it wait for the ones
+    // stamped before them: how many wait at once is known now, and must fit.
+    let mut by_stamp: Vec<usize> = (0..frames.len()).collect();
+    by_stamp.sort_by(|&a, &b| frames[a].0.total_cmp(&frames[b].0));
+    let mut order = vec![0; frames.len()];
+    for (rank, &i) in by_stamp.iter().enumerate() {
+        order[i] = rank;
+    }
+    let waiting = most_waiting(&order);
+    crate::limits::check_memory(
+        &format!("holding {waiting} depth images of {} to put them in stamp order", options.depth_topic),
+        waiting as f64 * camera.pixel_count() as f64 * 4.0,
+        "record the images in stamp order, or split the bag",
+    )?;
+    let sample = kept
+        .into_iter()
+        .filter_map(|(n, depth)| {
+            let index = order[posed[n]?];
+            let (timestamp, pose) = frames[posed[n]?];
+            Some(Frame { index, timestamp, depth, pose, camera, noise: noise.clone() })
+        })
+        .collect();
+    let frames = by_stamp.iter().map(|&i| frames[i]).collect();
+    Ok(DepthIndex {
+        camera,
+        frames,
+        order,
+        skipped,
+        sample,
+        poses: std::sync::Arc::new(poses),
+        options: options.clone(),
+        noise,
+    })
+}
+
+/// How many frames must wait at most when frames arrive in the order `order` (frame indices)
+/// and are handed on in index order.
+fn most_waiting(order: &[usize]) -> usize {
+    let (mut waiting, mut next, mut most) = (std::collections::BTreeSet::new(), 0, 0);
+    for &i in order {
+        waiting.insert(i);
+        most = most.max(waiting.len() - 1);
+        while waiting.remove(&next) {
+            next += 1;
+        }
+    }
+    most
+}
+
+/// Calls `visit` with each posed depth frame of `index`'s topic in frame order (stamp order;
+/// frame `i` is `index.frames[i]`), decoded as they are read, until it returns
+/// `ControlFlow::Break`. Only images logged before ones stamped earlier wait in memory.
+pub fn for_each_frame(
+    bag: &Bag,
+    index: &DepthIndex,
+    mut visit: impl FnMut(Frame) -> Result<std::ops::ControlFlow<()>>,
+) -> Result<()> {
+    let bad = |m: String| Error::file(&bag.path, m);
+    let (topic, camera) = (index.options.depth_topic.as_str(), index.camera);
+    let (mut images, mut posed, mut next, mut stopped) = (0, 0, 0, false);
+    let mut waiting = std::collections::BTreeMap::new();
+    let result = bag.for_each(&[topic], |topic, msgtype, _, data, encoding| {
         images += 1;
-        // Decoded frames stay in memory (4 bytes a pixel): stop before they outgrow the limit.
-        let held = (frames.len() + 1) as f64 * camera.pixel_count() as f64 * 4.0;
-        crate::limits::check_memory(
-            &format!("decoding {} images of {topic}", frames.len() + 1),
-            held,
-            "map part of the bag (split it, or export-dataset and build with --frames)",
-        )?;
+        let decode = image_decoder(bag, topic, msgtype)?;
         let (h, depth) = decode(data, encoding).map_err(|m| bad(format!("{topic}: image {images}: {m}")))?;
         if (depth.width(), depth.height()) != (camera.width, camera.height) {
             return Err(bad(format!(
-                "{topic}: image {images} is {}x{} but {info_topic} says {}x{}",
+                "{topic}: image {images} is {}x{} but its camera info says {}x{}",
                 depth.width(),
                 depth.height(),
                 camera.width,
                 camera.height
             )));
         }
-        if h.stamp < last_stamp {
-            tracing::warn!("{topic}: image {images} is stamped before the one logged before it");
-        }
-        last_stamp = last_stamp.max(h.stamp);
-        match poses(&h.frame_id, h.stamp) {
-            Ok(pose) => frames.push(Frame {
-                index: frames.len(),
-                timestamp: h.stamp,
-                depth,
-                pose,
-                camera,
-                noise: noise.clone(),
-            }),
-            Err(why) => skipped.push(format!("image {images} at {:.3} s: {why}", h.stamp)),
+        // The first pass posed the same images; a stamp that gets none was skipped there.
+        let Ok(pose) = (index.poses)(&h.frame_id, h.stamp) else { return Ok(()) };
+        let Some(&i) = index.order.get(posed) else {
+            return Err(bad(format!("{topic}: more posed images than when the bag was indexed")));
+        };
+        posed += 1;
+        waiting.insert(i, Frame { index: i, timestamp: h.stamp, depth, pose, camera, noise: index.noise.clone() });
+        while let Some(frame) = waiting.remove(&next) {
+            next += 1;
+            if visit(frame)?.is_break() {
+                // (An error is the readers' only way to stop early; it is not one.)
+                stopped = true;
+                return Err(Error::Invalid("stopped".into()));
+            }
         }
         Ok(())
+    });
+    if stopped { Ok(()) } else { result }
+}
+
+/// The posed depth frames of a bag ([`for_each_frame`]), decoded on a thread of their own while
+/// the caller works on the last ones (at most two wait), in frame order. Memory holds a few
+/// images, whatever the bag's size.
+pub struct BagFrames {
+    frames: std::sync::mpsc::IntoIter<Result<Frame>>,
+    next: usize,
+}
+
+impl BagFrames {
+    /// Starts streaming `index`'s frames from `bag`.
+    pub fn new(bag: Bag, index: std::sync::Arc<DepthIndex>) -> Self {
+        let (send, receive) = std::sync::mpsc::sync_channel(2);
+        std::thread::spawn(move || {
+            let result = for_each_frame(&bag, &index, |frame| {
+                // A closed channel: the caller has stopped reading.
+                Ok(match send.send(Ok(frame)) {
+                    Ok(()) => std::ops::ControlFlow::Continue(()),
+                    Err(_) => std::ops::ControlFlow::Break(()),
+                })
+            });
+            if let Err(e) = result {
+                let _ = send.send(Err(e));
+            }
+        });
+        BagFrames { frames: receive.into_iter(), next: 0 }
+    }
+
+    /// Frame `i`, reading past the frames before it; `i` must not be below a frame already
+    /// returned.
+    pub fn frame(&mut self, i: usize) -> Result<Frame> {
+        if i < self.next {
+            return Err(Error::Invalid(format!("bag frames stream forward: frame {i} asked after {}", self.next)));
+        }
+        for frame in self.frames.by_ref() {
+            let frame = frame?;
+            self.next = frame.index + 1;
+            if frame.index == i {
+                return Ok(frame);
+            }
+        }
+        Err(Error::Invalid(format!("the bag ended before frame {i} (it changed since it was indexed?)")))
+    }
+}
+
+/// Depth frames of `options.depth_topic` with poses, all in memory (see [`BagFrames`] to
+/// stream them); also the images skipped and why.
+pub fn bag_frames(bag: &Bag, options: &BagOptions, noise: Option<NoiseModel>) -> Result<(Vec<Frame>, Vec<String>)> {
+    let index = depth_index(bag, options, noise, 0)?;
+    let mut frames = Vec::new();
+    for_each_frame(bag, &index, |frame| {
+        // Decoded frames stay in memory (4 bytes a pixel): stop before they outgrow the limit.
+        let held = (frames.len() + 1) as f64 * index.camera.pixel_count() as f64 * 4.0;
+        crate::limits::check_memory(
+            &format!("decoding {} images of {}", frames.len() + 1, options.depth_topic),
+            held,
+            "map part of the bag (split it, or export-dataset and build with --frames)",
+        )?;
+        frames.push(frame);
+        Ok(std::ops::ControlFlow::Continue(()))
     })?;
-    if images == 0 {
-        return Err(bad(format!("no messages on {}", options.depth_topic)));
-    }
-    frames.sort_by(|a, b| a.timestamp.total_cmp(&b.timestamp));
-    for (i, f) in frames.iter_mut().enumerate() {
-        f.index = i;
-    }
-    Ok((frames, skipped))
+    Ok((frames, index.skipped))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn frames_wait_only_for_those_stamped_before_them() {
+        assert_eq!(most_waiting(&[0, 1, 2, 3]), 0);
+        assert_eq!(most_waiting(&[3, 2, 1, 0]), 3);
+        assert_eq!(most_waiting(&[1, 0, 3, 2, 4]), 1);
+        assert_eq!(most_waiting(&[]), 0);
+    }
 
     #[test]
     fn compressed_mcap_chunks_and_bag_errors() {
@@ -404,6 +627,23 @@ mod tests {
             let topics = bag.topics().unwrap();
             assert_eq!((topics[0].topic.as_str(), topics[0].count), ("/tf", 50), "{name}");
             assert_eq!(bag.tf().unwrap().frames(), ["base", "map"]);
+            // Cut anywhere, the file reads the messages of its complete records, more the later
+            // the cut, or fails with an error naming it; it never panics.
+            let bytes = std::fs::read(&path).unwrap();
+            let cut = dir.join(format!("cut-{name}"));
+            let mut last = 0;
+            for at in (0..=bytes.len()).step_by(7).chain([bytes.len()]) {
+                std::fs::write(&cut, &bytes[..at]).unwrap();
+                match Bag::open(&cut).unwrap().topics() {
+                    Ok(t) => {
+                        let n = t.first().map_or(0, |t| t.count);
+                        assert!(n >= last, "{name} cut at {at}: {n} messages, {last} at a shorter cut");
+                        last = n;
+                    }
+                    Err(e) => assert!(e.to_string().contains("cut-"), "{e}"),
+                }
+            }
+            assert_eq!(last, 50, "{name} whole");
         }
         assert!(Bag::open(&dir.join("missing.mcap")).is_err());
         std::fs::write(dir.join("x.txt"), b"hello").unwrap();

@@ -78,6 +78,15 @@ fn transform(c: &mut Cdr, what: &str) -> CdrResult<Transform> {
     Ok(Transform { translation: c.f64s::<3>(what)?, rotation: c.f64s::<4>(what)? })
 }
 
+/// A depth image decoder: [`depth_image`] or [`compressed_depth`].
+pub type DecodeImage = fn(&[u8], Encoding) -> CdrResult<(Header, DepthImage)>;
+
+/// The header of a `sensor_msgs/Image` or `CompressedImage` (both begin with it), without
+/// decoding the image.
+pub fn image_header(data: &[u8], encoding: Encoding) -> CdrResult<Header> {
+    header(&mut Cdr::with(data, encoding)?)
+}
+
 /// `sensor_msgs/Image` holding depth: `16UC1` (millimetres) or `32FC1` (metres).
 pub fn depth_image(data: &[u8], encoding: Encoding) -> CdrResult<(Header, DepthImage)> {
     let mut c = Cdr::with(data, encoding)?;

@@ -1258,6 +1258,54 @@ fn ros2_bags_build_the_same_map_as_the_dataset() {
     }
 }
 
+/// `--snapshot-every` writes the map as it grows, the last snapshot being the map written;
+/// `--mcap-timeline` writes one Foxglove scene update per snapshot at increasing log times.
+#[test]
+fn snapshots_and_their_foxglove_timeline() {
+    let dir = workdir("snapshots");
+    let data = dataset(&dir);
+    let frames =
+        std::fs::read_to_string(data.join("depth.txt")).unwrap().lines().filter(|l| !l.starts_with('#')).count();
+    let (m, snaps, timeline) = (dir.join("m.mrfmap"), dir.join("snaps"), dir.join("t.mcap"));
+    let args = |every: &str| {
+        let mut a = vec!["build", s(&data), "-o", s(&m), "--resolution", "0.05", "-q"];
+        a.extend(["--snapshot-every", every, s(&snaps), "--mcap-timeline", s(&timeline)]);
+        a.into_iter().map(String::from).collect::<Vec<_>>()
+    };
+    let listed = |dir: &Path| {
+        let mut names: Vec<PathBuf> = std::fs::read_dir(dir).unwrap().map(|e| e.unwrap().path()).collect();
+        names.sort();
+        names
+    };
+    // Every frame its snapshot.
+    let o = run(&args("1e-9").iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(o.status.success(), "{}", stderr(&o));
+    let written = listed(&snaps);
+    assert_eq!(written.len(), frames, "{written:?}");
+    let last = mrfmap::map::Map::load(written.last().unwrap()).unwrap();
+    let built = mrfmap::map::Map::load(&m).unwrap();
+    assert_eq!(last.voxels.len(), built.voxels.len());
+    assert!(built.voxels.iter().all(|(k, v)| last.voxels.get(k) == Some(v)), "the last snapshot is the map");
+    let first = mrfmap::map::Map::load(&written[0]).unwrap();
+    assert!(first.voxels.len() < last.voxels.len(), "the map grows");
+    let bytes = std::fs::read(&timeline).unwrap();
+    let times: Vec<u64> = mcap::MessageStream::new(&bytes).unwrap().map(|m| m.unwrap().log_time).collect();
+    assert_eq!(times.len(), frames);
+    assert!(times.windows(2).all(|w| w[0] < w[1]), "{times:?}");
+    // One after the first frame, and the last frame's.
+    std::fs::remove_dir_all(&snaps).unwrap();
+    let o = run(&args("1e9").iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(listed(&snaps).len(), 2);
+    // Refused before any work: a bad interval, the batch MRF, laser logs.
+    let o = run(&args("-1").iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(!o.status.success() && stderr(&o).contains("positive number of seconds"), "{}", stderr(&o));
+    let mut mrf = args("1");
+    mrf.extend(["--engine".into(), "mrf".into()]);
+    let o = run(&mrf.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(!o.status.success() && stderr(&o).contains("--online"), "{}", stderr(&o));
+}
+
 /// Both metrics in one run, the biased target, the reference protocol in `loo` and `compare`,
 /// and the log-odds clamp: reported where a script reads them, bad values refused.
 #[test]

@@ -21,20 +21,49 @@ use crate::error::{Error, Result};
 /// # std::fs::remove_dir_all(&dir).unwrap();
 /// ```
 pub fn write_atomic(path: &Path, fill: impl FnOnce(&mut BufWriter<File>) -> std::io::Result<()>) -> Result<()> {
+    let (mut writer, pending) = create_atomic(path)?;
+    fill(&mut writer).map_err(|e| Error::io(path, e))?;
+    pending.commit(writer)
+}
+
+/// A file written over time (a log, a timeline) that appears at its path only when
+/// [`Pending::commit`] succeeds: the writer goes to a temporary file beside it, which is
+/// removed if the `Pending` is dropped uncommitted.
+pub fn create_atomic(path: &Path) -> Result<(BufWriter<File>, Pending)> {
     let tmp = temp_path(path);
-    let result = (|| {
-        let file = File::create(&tmp)?;
-        let mut writer = BufWriter::new(file);
-        fill(&mut writer)?;
-        writer.flush()?;
-        writer.get_ref().sync_all()?;
-        drop(writer);
-        std::fs::rename(&tmp, path)
-    })();
-    result.map_err(|e| {
-        let _ = std::fs::remove_file(&tmp);
-        Error::io(path, e)
-    })
+    let file = File::create(&tmp).map_err(|e| Error::io(path, e))?;
+    Ok((BufWriter::new(file), Pending { path: path.to_path_buf(), tmp, done: false }))
+}
+
+/// The temporary file of [`create_atomic`], waiting to be renamed into place.
+#[derive(Debug)]
+pub struct Pending {
+    path: PathBuf,
+    tmp: PathBuf,
+    done: bool,
+}
+
+impl Pending {
+    /// Flushes and syncs `writer` (the one [`create_atomic`] gave) and renames its file into
+    /// place.
+    pub fn commit(mut self, mut writer: BufWriter<File>) -> Result<()> {
+        let result = (|| {
+            writer.flush()?;
+            writer.get_ref().sync_all()?;
+            drop(writer);
+            std::fs::rename(&self.tmp, &self.path)
+        })();
+        self.done = result.is_ok();
+        result.map_err(|e| Error::io(&self.path, e))
+    }
+}
+
+impl Drop for Pending {
+    fn drop(&mut self) {
+        if !self.done {
+            let _ = std::fs::remove_file(&self.tmp);
+        }
+    }
 }
 
 /// `dir/.name.PID.tmp`: same folder (so the rename is atomic), hidden, unique per process.

@@ -388,6 +388,100 @@ pub struct Args {
     bag: BagArgs,
     #[command(flatten)]
     online: OnlineArgs,
+    #[command(flatten)]
+    snapshots: SnapshotArgs,
+}
+
+/// Live output while a map is built (`--snapshot-every`, `--mcap-timeline`).
+#[derive(clap::Args, Clone)]
+pub struct SnapshotArgs {
+    /// Depth frames: also write the map as it was every SECONDS of recording time (the
+    /// frames' stamps; the first after the first frame) into the folder DIR, as
+    /// DIR/NNNNN_TIME.mrfmap, each written atomically so that a robot stack or a viewer can
+    /// pick them up; the last frame's map is written too. The MRF needs --online for this.
+    #[arg(long, num_args = 2, value_names = ["SECONDS", "DIR"], allow_hyphen_values = true)]
+    pub snapshot_every: Option<Vec<String>>,
+    /// With --snapshot-every: also write the snapshots as a Foxglove timeline (MCAP): one
+    /// foxglove.SceneUpdate per snapshot at its recording time, holding the bricks whose cubes
+    /// changed and deleting the bricks left without any (cubes above 0.5, coloured by
+    /// occupancy).
+    #[arg(long, requires = "snapshot_every")]
+    pub mcap_timeline: Option<PathBuf>,
+}
+
+impl SnapshotArgs {
+    /// The snapshot writer these options ask for, checked before any work.
+    fn snapshots(&self) -> Result<Option<Snapshots>> {
+        let Some(v) = &self.snapshot_every else { return Ok(None) };
+        let every: f64 = v[0]
+            .parse()
+            .ok()
+            .filter(|s: &f64| *s > 0.0 && s.is_finite())
+            .with_context(|| format!("--snapshot-every: {:?} is not a positive number of seconds", v[0]))?;
+        let dir = PathBuf::from(&v[1]);
+        std::fs::create_dir_all(&dir).with_context(|| format!("--snapshot-every: cannot create {}", dir.display()))?;
+        if let Some(t) = &self.mcap_timeline {
+            check_output_folder(t)?;
+        }
+        let timeline = self.mcap_timeline.clone().map(|path| (path, None));
+        Ok(Some(Snapshots { every, dir, next: None, last: None, written: 0, timeline }))
+    }
+}
+
+/// Writes the map as it is built, every `every` seconds of recording time: map files into
+/// `dir`, and optionally a Foxglove timeline.
+pub struct Snapshots {
+    every: f64,
+    dir: PathBuf,
+    /// The recording time of the next snapshot (`None` before the first frame).
+    next: Option<f64>,
+    /// The time of the last frame integrated, and whether a snapshot holds it.
+    last: Option<(f64, bool)>,
+    written: usize,
+    /// The timeline's path and, once the first snapshot is taken, its writer.
+    timeline: Option<(PathBuf, Option<mrfmap::outputs::SceneTimeline>)>,
+}
+
+impl Snapshots {
+    /// After a reading stamped `time` went into `engine`: a snapshot if one is due.
+    fn after(&mut self, time: Option<f64>, engine: &dyn Engine) -> Result<()> {
+        let Some(time) = time else { bail!("--snapshot-every needs readings with timestamps (depth frames)") };
+        let next = *self.next.get_or_insert(time);
+        self.last = Some((time, false));
+        if time >= next {
+            self.next = Some(next + self.every * ((time - next) / self.every).floor() + self.every);
+            self.write(time, engine)?;
+        }
+        Ok(())
+    }
+
+    fn write(&mut self, time: f64, engine: &dyn Engine) -> Result<()> {
+        let mut map = engine.map();
+        map.params.insert("snapshot_time".into(), format!("{time:.6}"));
+        let path = self.dir.join(format!("{:05}_{time:.3}.mrfmap", self.written));
+        map.save(&path)?;
+        if let Some((file, timeline)) = &mut self.timeline {
+            if timeline.is_none() {
+                *timeline = Some(mrfmap::outputs::SceneTimeline::create(file, &map, Default::default())?);
+            }
+            timeline.as_mut().expect("just made").add(&map, time)?;
+        }
+        self.written += 1;
+        self.last = Some((time, true));
+        Ok(())
+    }
+
+    /// After the last reading: its map too (if no snapshot holds it yet), and the timeline put
+    /// in place. Returns the snapshots written.
+    fn finish(mut self, engine: &dyn Engine) -> Result<usize> {
+        if let Some((time, false)) = self.last {
+            self.write(time, engine)?;
+        }
+        if let Some((_, Some(timeline))) = self.timeline {
+            timeline.finish()?;
+        }
+        Ok(self.written)
+    }
 }
 
 /// The MRF's online schedule (`--online`).
@@ -457,15 +551,25 @@ pub fn select_frames(len: usize, frames: &[usize], exclude: &[usize]) -> Result<
 pub trait Reading {
     /// Adds this reading's evidence to `engine`.
     fn integrate_into(&self, engine: &mut dyn Engine) -> mrfmap::Result<()>;
+    /// The reading's recording time (seconds), if it has one.
+    fn timestamp(&self) -> Option<f64>;
 }
 
 impl Reading for Frame {
     fn integrate_into(&self, engine: &mut dyn Engine) -> mrfmap::Result<()> {
         engine.integrate(self)
     }
+
+    fn timestamp(&self) -> Option<f64> {
+        Some(self.timestamp)
+    }
 }
 
 impl Reading for RangeScan {
+    fn timestamp(&self) -> Option<f64> {
+        None
+    }
+
     fn integrate_into(&self, engine: &mut dyn Engine) -> mrfmap::Result<()> {
         engine.integrate_scan(self)
     }
@@ -522,7 +626,17 @@ pub fn dataset_extent(dataset: &Dataset, indices: &[usize], config: &EngineConfi
 pub fn build_map<R: Reading>(
     indices: &[usize],
     config: &EngineConfig,
+    reading: impl FnMut(usize) -> mrfmap::Result<R>,
+) -> Result<BuildReport> {
+    build_map_with(indices, config, reading, None)
+}
+
+/// [`build_map`], writing `snapshots` as it goes.
+pub fn build_map_with<R: Reading>(
+    indices: &[usize],
+    config: &EngineConfig,
     mut reading: impl FnMut(usize) -> mrfmap::Result<R>,
+    mut snapshots: Option<Snapshots>,
 ) -> Result<BuildReport> {
     let mut engine = new_engine(config)?;
     let bar = crate::progress::bar(indices.len() as u64, config.kind.name());
@@ -532,9 +646,17 @@ pub fn build_map<R: Reading>(
         let t = Instant::now();
         reading.integrate_into(engine.as_mut()).with_context(|| format!("integrating reading {i}"))?;
         integrate_time += t.elapsed();
+        if let Some(s) = &mut snapshots {
+            s.after(reading.timestamp(), engine.as_ref())?;
+        }
         bar.inc(1);
     }
     bar.finish_and_clear();
+    if let Some(s) = snapshots {
+        // (Not inside the log macro: with the level off, it would not run.)
+        let written = s.finish(engine.as_ref())?;
+        tracing::info!("{written} snapshots written");
+    }
     let t = Instant::now();
     let bar = crate::progress::bar(0, "inference");
     engine.finish_with_progress(&mut |done, total| {
@@ -554,6 +676,7 @@ pub fn build_online(
     config: &EngineConfig,
     reading: &mut dyn FnMut(usize) -> mrfmap::Result<Frame>,
     online: &OnlineArgs,
+    mut snapshots: Option<Snapshots>,
 ) -> Result<BuildReport> {
     config.limits.validate()?;
     let mut engine = MrfEngine::new(config.resolution, config.limits, config.mrf)?;
@@ -563,6 +686,7 @@ pub fn build_online(
     let mut integrate_time = Duration::ZERO;
     for &i in indices {
         let frame = reading(i)?;
+        let frame_time = frame.timestamp;
         if engine.is_new_keyframe(&frame.pose) {
             let (_, r) = engine.add_keyframe_within(frame, budget).with_context(|| format!("integrating frame {i}"))?;
             integrate_time += r.elapsed;
@@ -575,9 +699,16 @@ pub fn build_online(
             ));
             tracing::debug!("frame {i}: keyframe {}: {r:?}", rows.len());
         }
+        if let Some(s) = &mut snapshots {
+            s.after(Some(frame_time), &engine)?;
+        }
         bar.inc(1);
     }
     bar.finish_and_clear();
+    if let Some(s) = snapshots {
+        let written = s.finish(&engine)?;
+        tracing::info!("{written} snapshots written");
+    }
     let (last_backlog, settled) = rows.last().map_or((0, true), |r| (r.backlog, r.settled));
     if online.finish {
         let t = Instant::now();
@@ -631,9 +762,16 @@ pub fn run(a: Args) -> Result<()> {
         }
     }
     let config = a.options.config(kind, a.resolution)?;
-    let build = |indices: &[usize], reading: &mut dyn FnMut(usize) -> mrfmap::Result<Frame>| match online {
-        Some(o) => build_online(indices, &config, reading, o),
-        None => build_map(indices, &config, reading),
+    if a.snapshots.snapshot_every.is_some() && (scans || kind == EngineKind::Mrf && online.is_none()) {
+        bail!(
+            "--snapshot-every takes depth frames (a dataset or a bag's --depth-topic), and with --engine mrf \
+             --online: the batch MRF infers only after the last frame"
+        );
+    }
+    let mut snapshots = a.snapshots.snapshots()?;
+    let mut build = |indices: &[usize], reading: &mut dyn FnMut(usize) -> mrfmap::Result<Frame>| match online {
+        Some(o) => build_online(indices, &config, reading, o, snapshots.take()),
+        None => build_map_with(indices, &config, reading, snapshots.take()),
     };
     let mut up = None;
     let (report, indices_used) = if let (true, Some(topic)) = (BagArgs::is_bag(&a.dataset), &a.bag.scan_topic) {

@@ -8,13 +8,14 @@
 //! default). Built behind the `mcap` cargo feature.
 
 use std::collections::BTreeMap;
-use std::io::{Cursor, Write};
-use std::path::Path;
+use std::fs::File;
+use std::io::{BufWriter, Cursor, Write};
+use std::path::{Path, PathBuf};
 
 use serde_json::{Value, json};
 
 use super::{Colouring, Up};
-use crate::atomic_file::write_atomic;
+use crate::atomic_file::{Pending, create_atomic, write_atomic};
 use crate::error::{Error, Result};
 use crate::map::Map;
 
@@ -76,13 +77,13 @@ fn schema() -> Value {
     })
 }
 
-/// The scene message for `map`.
-fn scene(map: &Map, options: &SceneOptions) -> (Value, SceneSummary) {
+/// One scene entity per brick of `map` with cubes, in brick order: its id, the entity (stamped
+/// `stamp`) and its cube count.
+fn brick_entities(map: &Map, options: &SceneOptions, stamp: &Value) -> Vec<(String, Value, usize)> {
     let r = map.resolution();
     let z_range = map.bounds().map_or((0.0, 1.0), |(lo, hi)| (lo[2], hi[2]));
     let zero = json!({"sec": 0, "nsec": 0});
     let mut entities = Vec::new();
-    let mut cubes_total = 0;
     for bk in map.voxels.sorted_brick_keys() {
         let brick = map.voxels.brick(bk).expect("own key");
         let cubes: Vec<Value> = brick
@@ -106,37 +107,131 @@ fn scene(map: &Map, options: &SceneOptions) -> (Value, SceneSummary) {
         if cubes.is_empty() {
             continue;
         }
-        cubes_total += cubes.len();
         let [x, y, z] = bk.0;
-        entities.push(json!({
-            "timestamp": zero, "frame_id": options.frame_id, "id": format!("brick/{x}/{y}/{z}"),
+        let (id, count) = (format!("brick/{x}/{y}/{z}"), cubes.len());
+        let entity = json!({
+            "timestamp": stamp, "frame_id": options.frame_id, "id": id,
             "lifetime": zero, "frame_locked": false, "metadata": [],
             "arrows": [], "cubes": cubes, "spheres": [], "cylinders": [], "lines": [],
             "triangles": [], "texts": [], "models": [],
-        }));
+        });
+        entities.push((id, entity, count));
     }
-    let summary = SceneSummary { entities: entities.len(), cubes: cubes_total };
+    entities
+}
+
+/// The scene message for `map`.
+fn scene(map: &Map, options: &SceneOptions) -> (Value, SceneSummary) {
+    let entities = brick_entities(map, options, &json!({"sec": 0, "nsec": 0}));
+    let summary = SceneSummary { entities: entities.len(), cubes: entities.iter().map(|e| e.2).sum() };
+    let entities: Vec<Value> = entities.into_iter().map(|e| e.1).collect();
     (json!({"deletions": [], "entities": entities}), summary)
 }
 
-/// Writes `map` as an MCAP file Foxglove opens: one `foxglove.SceneUpdate` on
-/// [`SCENE_TOPIC`] (atomically: temp file + rename).
-pub fn write_scene_mcap(map: &Map, path: &Path, options: &SceneOptions) -> Result<SceneSummary> {
-    // A cube is about 1 KiB as a JSON value and again as text: checked before building them.
+/// The MCAP writer of a scene file, its schema and channel written.
+fn scene_writer<W: Write + std::io::Seek>(
+    out: W,
+    map: &Map,
+) -> std::result::Result<(mcap::Writer<W>, u16), mcap::McapError> {
+    let mut out = mcap::Writer::new(out)?;
+    let schema = out.add_schema("foxglove.SceneUpdate", "jsonschema", schema().to_string().as_bytes())?;
+    let mut metadata = BTreeMap::new();
+    metadata.insert("resolution".to_string(), map.resolution().to_string());
+    metadata.insert("engine".to_string(), map.engine.clone());
+    let channel = out.add_channel(schema, SCENE_TOPIC, "json", &metadata)?;
+    Ok((out, channel))
+}
+
+/// Checks that a scene of `map`'s cubes fits in memory (a cube is about 1 KiB as a JSON value
+/// and again as text), before building them.
+fn check_scene(map: &Map, options: &SceneOptions) -> Result<()> {
     let cubes = map.voxels.iter().filter(|(_, v)| v.occupancy > options.threshold).count();
     crate::limits::check_memory(
         &format!("a Foxglove scene of {cubes} cubes"),
         cubes as f64 * 2048.0,
         "crop the map or raise --threshold",
-    )?;
+    )
+}
+
+/// A Foxglove timeline of a map as it is built: one `SceneUpdate` per snapshot at its log
+/// time, holding the bricks whose cubes changed since the last snapshot and deleting the
+/// bricks left without any, so a viewer scrubbing the timeline sees the map as it was.
+/// Written as it goes into a temporary file; [`SceneTimeline::finish`] puts it in place.
+pub struct SceneTimeline {
+    path: PathBuf,
+    writer: mcap::Writer<BufWriter<File>>,
+    pending: Pending,
+    channel: u16,
+    options: SceneOptions,
+    /// Per entity shown, a hash of its cubes.
+    shown: BTreeMap<String, u64>,
+    sequence: u32,
+}
+
+impl SceneTimeline {
+    /// Starts the timeline file `path` for maps like `first` (its resolution and engine go into
+    /// the channel's metadata).
+    pub fn create(path: &Path, first: &Map, options: SceneOptions) -> Result<Self> {
+        let (file, pending) = create_atomic(path)?;
+        let (writer, channel) =
+            scene_writer(file, first).map_err(|e| Error::file(path, format!("writing MCAP: {e}")))?;
+        let shown = BTreeMap::new();
+        Ok(SceneTimeline { path: path.to_path_buf(), writer, pending, channel, options, shown, sequence: 0 })
+    }
+
+    /// Adds `map` as it was at `time` (seconds; log times must not decrease).
+    pub fn add(&mut self, map: &Map, time: f64) -> Result<SceneSummary> {
+        check_scene(map, &self.options)?;
+        let ns = (time.max(0.0) * 1e9) as u64;
+        let stamp = json!({"sec": ns / 1_000_000_000, "nsec": ns % 1_000_000_000});
+        let entities = brick_entities(map, &self.options, &stamp);
+        let summary = SceneSummary { entities: entities.len(), cubes: entities.iter().map(|e| e.2).sum() };
+        let mut now = BTreeMap::new();
+        let mut changed = Vec::new();
+        for (id, entity, _) in entities {
+            let mut h = std::hash::DefaultHasher::new();
+            std::hash::Hash::hash(&entity["cubes"].to_string(), &mut h);
+            let hash = std::hash::Hasher::finish(&h);
+            if self.shown.get(&id) != Some(&hash) {
+                changed.push(entity);
+            }
+            now.insert(id, hash);
+        }
+        let deletions: Vec<Value> = (self.shown.keys())
+            .filter(|id| !now.contains_key(*id))
+            .map(|id| json!({"timestamp": stamp, "type": 0, "id": id}))
+            .collect();
+        self.shown = now;
+        let message = json!({"deletions": deletions, "entities": changed}).to_string();
+        let header = mcap::records::MessageHeader {
+            channel_id: self.channel,
+            sequence: self.sequence,
+            log_time: ns,
+            publish_time: ns,
+        };
+        self.sequence += 1;
+        (self.writer.write_to_known_channel(&header, message.as_bytes()))
+            .map_err(|e| Error::file(&self.path, format!("writing MCAP: {e}")))?;
+        Ok(summary)
+    }
+
+    /// Finishes the file and puts it in place; returns the snapshots written.
+    pub fn finish(mut self) -> Result<u32> {
+        let bad = |e: mcap::McapError| Error::file(&self.path, format!("writing MCAP: {e}"));
+        self.writer.finish().map_err(bad)?;
+        let file = self.writer.into_inner();
+        self.pending.commit(file)?;
+        Ok(self.sequence)
+    }
+}
+
+/// Writes `map` as an MCAP file Foxglove opens: one `foxglove.SceneUpdate` on
+/// [`SCENE_TOPIC`] (atomically: temp file + rename).
+pub fn write_scene_mcap(map: &Map, path: &Path, options: &SceneOptions) -> Result<SceneSummary> {
+    check_scene(map, options)?;
     let (message, summary) = scene(map, options);
     let encode = || -> std::result::Result<Vec<u8>, mcap::McapError> {
-        let mut out = mcap::Writer::new(Cursor::new(Vec::new()))?;
-        let schema = out.add_schema("foxglove.SceneUpdate", "jsonschema", schema().to_string().as_bytes())?;
-        let mut metadata = BTreeMap::new();
-        metadata.insert("resolution".to_string(), map.resolution().to_string());
-        metadata.insert("engine".to_string(), map.engine.clone());
-        let channel = out.add_channel(schema, SCENE_TOPIC, "json", &metadata)?;
+        let (mut out, channel) = scene_writer(Cursor::new(Vec::new()), map)?;
         let header = mcap::records::MessageHeader { channel_id: channel, sequence: 0, log_time: 0, publish_time: 0 };
         out.write_to_known_channel(&header, message.to_string().as_bytes())?;
         out.finish()?;
@@ -151,6 +246,53 @@ pub fn write_scene_mcap(map: &Map, path: &Path, options: &SceneOptions) -> Resul
 mod tests {
     use super::*;
     use crate::map::{MapVoxel, VoxelKey};
+
+    #[test]
+    fn a_timeline_sends_what_changed_and_deletes_what_emptied() {
+        let map_of = |voxels: &[([i32; 3], f32)]| {
+            let mut map = Map::new("logodds", 0.1).unwrap();
+            for &(k, p) in voxels {
+                map.voxels.insert(VoxelKey(k), MapVoxel { occupancy: p, variance: 0.0 });
+            }
+            map
+        };
+        // Brick 0/0/0 appears, brick 1/0/0 joins while 0/0/0 stays the same, then 0/0/0 empties.
+        let steps = [
+            map_of(&[([0, 0, 0], 0.9)]),
+            map_of(&[([0, 0, 0], 0.9), ([9, 0, 0], 0.8)]),
+            map_of(&[([0, 0, 0], 0.3), ([9, 0, 0], 0.8), ([9, 1, 0], 0.7)]),
+        ];
+        let dir = std::env::temp_dir().join(format!("mrfmap-timeline-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("t.mcap");
+        let mut timeline = SceneTimeline::create(&path, &steps[0], SceneOptions::default()).unwrap();
+        for (k, map) in steps.iter().enumerate() {
+            timeline.add(map, 10.0 + k as f64).unwrap();
+        }
+        assert!(!path.exists(), "the file appears when finished");
+        assert_eq!(timeline.finish().unwrap(), 3);
+        let bytes = std::fs::read(&path).unwrap();
+        let messages: Vec<_> =
+            mcap::MessageStream::new(&bytes).unwrap().collect::<std::result::Result<_, _>>().unwrap();
+        let times: Vec<u64> = messages.iter().map(|m| m.log_time).collect();
+        assert_eq!(times, [10_000_000_000, 11_000_000_000, 12_000_000_000]);
+        let ids = |m: &mcap::Message, what: &str| -> Vec<String> {
+            let v: Value = serde_json::from_slice(&m.data).unwrap();
+            v[what].as_array().unwrap().iter().map(|e| e["id"].as_str().unwrap().to_string()).collect()
+        };
+        assert_eq!(ids(&messages[0], "entities"), ["brick/0/0/0"]);
+        assert_eq!(ids(&messages[1], "entities"), ["brick/1/0/0"], "only what changed");
+        assert_eq!(ids(&messages[2], "entities"), ["brick/1/0/0"]);
+        assert_eq!(ids(&messages[2], "deletions"), ["brick/0/0/0"]);
+        let v: Value = serde_json::from_slice(&messages[2].data).unwrap();
+        assert_eq!(v["entities"][0]["cubes"].as_array().unwrap().len(), 2);
+        assert_eq!(v["entities"][0]["timestamp"]["sec"], 12);
+        // Dropped before it is finished, a timeline leaves nothing behind.
+        let other = dir.join("u.mcap");
+        drop(SceneTimeline::create(&other, &steps[0], SceneOptions::default()).unwrap());
+        assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 1);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 
     #[test]
     fn the_scene_reads_back_as_one_scene_update_with_a_cube_per_occupied_voxel() {

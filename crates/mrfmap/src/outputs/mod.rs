@@ -2,7 +2,8 @@
 //!
 //! - [`write_ply`] / [`read_ply`]: voxel centres with occupancy (and variance) as PLY;
 //! - [`write_map_server`] / [`read_map_server`]: 2D occupancy grids as ROS `map_server` PGM + YAML;
-//! - `write_scene_mcap` (cargo feature `mcap`): a Foxglove scene of the occupied voxels;
+//! - `write_scene_mcap` (cargo feature `mcap`): a Foxglove scene of the occupied voxels, and
+//!   `SceneTimeline` a timeline of them as a map is built;
 //! - [`write_octomap`] / [`read_octomap`]: OctoMap `.bt` and `.ot` files;
 //! - [`query_point`], [`query_segment`], [`query_box`]: what a planner asks (occupancy with
 //!   its sigma, the probability that a path or box is free, with a confidence bound);
@@ -31,7 +32,7 @@ pub use accuracy::{
 };
 pub use canvas::{Canvas, PlotArea, Rgb, Series, line_plot, nice_step};
 #[cfg(feature = "mcap")]
-pub use foxglove::{SCENE_TOPIC, SceneOptions, SceneSummary, write_scene_mcap};
+pub use foxglove::{SCENE_TOPIC, SceneOptions, SceneSummary, SceneTimeline, write_scene_mcap};
 pub use grid2d::{FREE_THRESH, Grid2dFiles, MapServerGrid, OCCUPIED_THRESH, read_map_server, write_map_server};
 pub use octomap::{
     OctomapFormat, OctomapLeaf, OctomapSummary, OctomapTree, TREE_DEPTH, decode_octomap, read_octomap, write_octomap,

@@ -3,7 +3,7 @@
 
 use std::path::PathBuf;
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use mrfmap::frames::NoiseModel;
 use mrfmap::source::DatasetWriter;
 use mrfmap::source::bag::{Bag, TopicInfo};
@@ -93,16 +93,19 @@ pub struct ExportArgs {
 
 /// `mrfmap export-dataset`: a bag's posed depth images as a TUM-layout dataset, for `loo`,
 /// `compare`, `eval` and other tools. Depth PNGs use depth_scale 5000 (0.2 mm steps, up to
-/// 13.1 m), or 1000 (1 mm, up to 65.5 m) when a depth is beyond 13.1 m.
+/// 13.1 m), or 1000 (1 mm, up to 65.5 m) when a depth is beyond 13.1 m. The images stream (one
+/// in memory at a time): a pass finds the farthest depth, the next writes them.
 pub fn export_dataset(a: ExportArgs) -> Result<()> {
-    let frames = a.topics.frames(&a.bag, None)?;
-    let farthest = frames.iter().flat_map(|f| f.depth.data().iter().copied()).fold(0.0f32, f32::max);
-    let mut camera = frames[0].camera;
+    let (mut farthest, mut camera) = (0.0f32, None);
+    a.topics.each_frame(&a.bag, |f| {
+        farthest = f.depth.data().iter().copied().fold(farthest, f32::max);
+        camera.get_or_insert(f.camera);
+        Ok(())
+    })?;
+    let mut camera = camera.with_context(|| format!("{}: no posed depth image could be read", a.bag.display()))?;
     camera.depth_scale = if farthest > 13.1 { 1000.0 } else { 5000.0 };
     let mut writer = DatasetWriter::create(&a.output, camera, false)?;
-    for f in &frames {
-        writer.add(f.timestamp, &f.pose, &f.depth, None)?;
-    }
+    a.topics.each_frame(&a.bag, |f| Ok(writer.add(f.timestamp, &f.pose, &f.depth, None)?))?;
     let noise = a.noise.as_deref().map(NoiseModel::load).transpose()?;
     let n = writer.finish(noise.as_ref())?;
     println!("{}: {n} frames (depth_scale {})", a.output.display(), camera.depth_scale);

@@ -271,6 +271,32 @@ impl BagArgs {
         }
     }
 
+    /// Calls `visit` with the bag's posed depth frames one at a time, in stamp order, and
+    /// returns how many there were (skipped images are summarised in a warning; none posed is
+    /// an error).
+    #[cfg(feature = "bags")]
+    pub fn each_frame(&self, path: &std::path::Path, mut visit: impl FnMut(Frame) -> Result<()>) -> Result<usize> {
+        let (options, _) = self.depth_options(None)?;
+        let bag = Bag::open(path)?;
+        let index = depth_index(&bag, &options, None, 0)?;
+        let all: Vec<usize> = (0..index.frames.len()).collect();
+        posed(path, &options.depth_topic, all, &index.skipped)?;
+        let mut failed = None;
+        mrfmap::source::bag::for_each_frame(&bag, &index, |frame| {
+            Ok(match visit(frame) {
+                Ok(()) => std::ops::ControlFlow::Continue(()),
+                Err(e) => {
+                    failed = Some(e);
+                    std::ops::ControlFlow::Break(())
+                }
+            })
+        })?;
+        match failed {
+            Some(e) => Err(e),
+            None => Ok(index.frames.len()),
+        }
+    }
+
     /// Builds with `build` from the bag's posed depth images, streamed: a first pass reads
     /// the camera, the poses and every image's header (and decodes a few images for the
     /// memory estimate), then the chosen frames are decoded one at a time as `build` takes

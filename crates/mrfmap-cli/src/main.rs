@@ -80,6 +80,11 @@ enum Command {
     Experiment(commands::experiment::Args),
     /// Time map building per frame at several resolutions (release builds only make sense).
     Bench(commands::bench::Args),
+    /// Print a shell completion script: e.g. `mrfmap completions bash > ~/.local/share/bash-completion/completions/mrfmap`.
+    Completions {
+        /// The shell: bash, zsh, fish, elvish or powershell.
+        shell: clap_complete::Shell,
+    },
 }
 
 fn main() {
@@ -159,6 +164,11 @@ fn main() {
             Command::Scaling(a) => commands::scaling::run(a),
             Command::Experiment(a) => commands::experiment::run(a),
             Command::Bench(a) => commands::bench::run(a),
+            Command::Completions { shell } => {
+                use clap::CommandFactory;
+                clap_complete::generate(shell, &mut Cli::command(), "mrfmap", &mut std::io::stdout());
+                Ok(())
+            }
         }
     })();
     if let Err(e) = result {

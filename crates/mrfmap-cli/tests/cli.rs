@@ -1258,6 +1258,20 @@ fn ros2_bags_build_the_same_map_as_the_dataset() {
     }
 }
 
+/// Shell completion scripts name the subcommands and their options; an unknown shell is an
+/// argument error.
+#[test]
+fn shell_completions() {
+    for shell in ["bash", "zsh", "fish"] {
+        let o = run(&["completions", shell]);
+        let script = stdout(&o);
+        assert!(o.status.success() && script.contains("mrfmap"), "{shell}: {}", stderr(&o));
+        assert!(script.contains("export-dataset") && script.contains("--snapshot-every"), "{shell}");
+    }
+    let o = run(&["completions", "tcsh"]);
+    assert_eq!(o.status.code(), Some(1), "{}", stderr(&o));
+}
+
 /// `--snapshot-every` writes the map as it grows, the last snapshot being the map written;
 /// `--mcap-timeline` writes one Foxglove scene update per snapshot at increasing log times.
 #[test]

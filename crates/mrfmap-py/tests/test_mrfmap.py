@@ -128,11 +128,12 @@ def test_bad_input_raises_value_error(tmp_path):
         (lambda: mrfmap.Mapper(-1.0, **CAM), "resolution"),
         (lambda: mrfmap.Mapper(0.05, engine="crm", particles=1, **CAM), "particles"),
         (lambda: m.map().export_bt(tmp_path / "empty.bt"), "empty"),
+        (lambda: m.map().export_ply(tmp_path / "empty.ply"), "nothing to export"),
     ]
     for call, needle in cases:
         with pytest.raises(ValueError, match=needle):
             call()
-    assert not (tmp_path / "empty.bt").exists()
+    assert not (tmp_path / "empty.bt").exists() and not (tmp_path / "empty.ply").exists()
     with pytest.raises(OSError):
         mrfmap.load_map(tmp_path / "missing.mrfmap")
 

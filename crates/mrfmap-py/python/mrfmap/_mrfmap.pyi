@@ -193,7 +193,8 @@ class Map:
     def save(self, path: os.PathLike[str] | str) -> None:
         """Saves in mrfmap's map format (readable by ``load_map`` and the ``mrfmap`` command)."""
     def export_ply(self, path: os.PathLike[str] | str, occupied_only: bool = False) -> int:
-        """Binary PLY of voxel centres with occupancy (and variance); returns the vertex count."""
+        """Binary PLY of voxel centres with occupancy (and variance); returns the vertex count.
+        ``ValueError`` if no voxel would be written."""
     def export_bt(self, path: os.PathLike[str] | str) -> None:
         """OctoMap ``.bt`` (occupied above 0.5 / free, pruned). ``ValueError`` if empty."""
     def export_ot(self, path: os.PathLike[str] | str) -> None:

@@ -25,7 +25,9 @@ impl PlyOptions {
     }
 }
 
-/// Writes `map` as a binary PLY (atomically); returns the number of vertices written.
+/// Writes `map` as a binary PLY (atomically); returns the number of vertices written. Fails,
+/// writing nothing, when no voxel would be written (an empty map, or none occupied with
+/// [`PlyOptions::occupied_only`]), as the OctoMap export does.
 pub fn write_ply(map: &Map, path: &Path, options: PlyOptions) -> Result<usize> {
     let r = map.resolution();
     let mut properties = vec!["x", "y", "z", "occupancy"];
@@ -46,6 +48,10 @@ pub fn write_ply(map: &Map, path: &Path, options: PlyOptions) -> Result<usize> {
             }
             n += 1;
         }
+    }
+    if n == 0 {
+        let what = if options.min_occupancy.is_some() { "no occupied voxels" } else { "no voxels" };
+        return Err(Error::Invalid(format!("{}: the map has {what}: nothing to export", path.display())));
     }
     write_vertices(path, &[format!("resolution {r}"), format!("engine {}", map.engine)], &properties, &body)?;
     Ok(n)
@@ -199,6 +205,11 @@ mod tests {
         let v = read_ply(&p).unwrap();
         assert_eq!(v.properties, ["x", "y", "z", "before", "after"]);
         assert_eq!(v.rows, vec![vec![0.05, 0.05, 0.05, -1.0, 0.75]]);
+        // Nothing to write: an error, and no file.
+        let none = dir.join("none.ply");
+        map.voxels.remove(VoxelKey([-1, 0, 2]));
+        let e = write_ply(&map, &none, PlyOptions::occupied_only()).unwrap_err().to_string();
+        assert!(e.contains("no occupied voxels") && !none.exists(), "{e}");
     }
 
     #[test]

@@ -1318,6 +1318,12 @@ fn snapshots_and_their_foxglove_timeline() {
     mrf.extend(["--engine".into(), "mrf".into()]);
     let o = run(&mrf.iter().map(String::as_str).collect::<Vec<_>>());
     assert!(!o.status.success() && stderr(&o).contains("--online"), "{}", stderr(&o));
+    // (Same data:) an MRF build that stops at its sweep cap says whether that matters.
+    let capped = ["--engine", "mrf", "--tolerance", "1e-12", "--iterations", "1"];
+    let o = run(&[&["build", s(&data), "-o", s(&m), "--resolution", "0.05"][..], &capped[..]].concat());
+    let err = stderr(&o);
+    assert!(o.status.success() && err.contains("not converged within the 1 sweeps --iterations allows"), "{err}");
+    assert!(err.contains("held-out accuracy does not need convergence"), "{err}");
 }
 
 /// Both metrics in one run, the biased target, the reference protocol in `loo` and `compare`,

@@ -201,7 +201,7 @@ pub fn sibling_camera_info(image_topic: &str) -> String {
 
 /// A function giving a frame's pose in the fixed frame at a stamp: from the TF tree, or from
 /// the pose topic (the sensor's pose, whatever the frame).
-type PoseSource = Box<dyn Fn(&str, f64) -> std::result::Result<Pose, String> + Send + Sync>;
+type PoseSource = Box<dyn Fn(&str, f64) -> std::result::Result<Pose, String>>;
 
 /// What poses are read from, gathered message by message ([`Poses::accept`]) in a pass over
 /// the bag, then turned into a [`PoseSource`] ([`Poses::finish`]).
@@ -342,13 +342,13 @@ pub struct DepthIndex {
     pub camera: Camera,
     /// Stamp and pose of each posed image, in stamp order (log order among equal stamps).
     pub frames: Vec<(f64, Pose)>,
-    /// Per posed image in log order, its frame index (its place in stamp order).
-    order: Vec<usize>,
+    /// Per image of the topic in log order, its frame index (its place in stamp order), or
+    /// `None` for an image without a pose.
+    slots: Vec<Option<usize>>,
     /// Images without a pose, and why.
     pub skipped: Vec<String>,
     /// Up to about `sample` decoded frames, evenly spread over the posed ones.
     pub sample: Vec<Frame>,
-    poses: std::sync::Arc<PoseSource>,
     options: BagOptions,
     noise: Option<std::sync::Arc<NoiseModel>>,
 }
@@ -452,16 +452,8 @@ pub fn depth_index(bag: &Bag, options: &BagOptions, noise: Option<NoiseModel>, s
         })
         .collect();
     let frames = by_stamp.iter().map(|&i| frames[i]).collect();
-    Ok(DepthIndex {
-        camera,
-        frames,
-        order,
-        skipped,
-        sample,
-        poses: std::sync::Arc::new(poses),
-        options: options.clone(),
-        noise,
-    })
+    let slots = posed.iter().map(|p| p.map(|i| order[i])).collect();
+    Ok(DepthIndex { camera, frames, slots, skipped, sample, options: options.clone(), noise })
 }
 
 /// How many frames must wait at most when frames arrive in the order `order` (frame indices)
@@ -488,7 +480,7 @@ pub fn for_each_frame(
 ) -> Result<()> {
     let bad = |m: String| Error::file(&bag.path, m);
     let (topic, camera) = (index.options.depth_topic.as_str(), index.camera);
-    let (mut images, mut posed, mut next, mut stopped) = (0, 0, 0, false);
+    let (mut images, mut next, mut stopped) = (0, 0, false);
     let mut waiting = std::collections::BTreeMap::new();
     let result = bag.for_each(&[topic], |topic, msgtype, _, data, encoding| {
         images += 1;
@@ -503,13 +495,16 @@ pub fn for_each_frame(
                 camera.height
             )));
         }
-        // The first pass posed the same images; a stamp that gets none was skipped there.
-        let Ok(pose) = (index.poses)(&h.frame_id, h.stamp) else { return Ok(()) };
-        let Some(&i) = index.order.get(posed) else {
-            return Err(bad(format!("{topic}: more posed images than when the bag was indexed")));
+        // The first pass posed the images (and skipped those without a pose).
+        let Some(&slot) = index.slots.get(images - 1) else {
+            return Err(bad(format!("{topic}: more images than when the bag was indexed")));
         };
-        posed += 1;
-        waiting.insert(i, Frame { index: i, timestamp: h.stamp, depth, pose, camera, noise: index.noise.clone() });
+        let Some(i) = slot else { return Ok(()) };
+        let (timestamp, pose) = index.frames[i];
+        if timestamp != h.stamp {
+            return Err(bad(format!("{topic}: image {images} is not the one indexed (the bag changed?)")));
+        }
+        waiting.insert(i, Frame { index: i, timestamp, depth, pose, camera, noise: index.noise.clone() });
         while let Some(frame) = waiting.remove(&next) {
             next += 1;
             if visit(frame)?.is_break() {

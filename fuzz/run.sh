@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Fuzzes every parser for SECONDS each (default 600), TARGETS at a time (default 2), on
+# Fuzzes every parser (or TARGETS) for SECONDS each (default 60: a short pass), one after another, on
 # stable Rust: libFuzzer's coverage comes from stable -C flags; safe Rust needs no sanitizer.
 # A finding (panic, timeout over 10 s, allocation over 1 GiB) stops that target and leaves
 # the input in fuzz/artifacts/TARGET/; add it as a regression test and fix it.
@@ -7,7 +7,7 @@
 # usage: fuzz/run.sh [SECONDS] [TARGETS...]
 set -euo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
-secs=${1:-600}
+secs=${1:-60}
 shift || true
 targets=${*:-depth_png camera_toml noise_toml scene_toml map_file ply octomap carmen bag_messages}
 "$here/seed.sh"

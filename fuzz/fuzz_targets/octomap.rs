@@ -1,5 +1,6 @@
 #![no_main]
 //! OctoMap `.bt` / `.ot` files (`outputs::decode_octomap`).
+
 libfuzzer_sys::fuzz_target!(|data: &[u8]| {
-    let _ = mrfmap::outputs::decode_octomap(data);
+    mrfmap_fuzz::run("octomap", data);
 });

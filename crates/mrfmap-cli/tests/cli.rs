@@ -842,7 +842,7 @@ fn query_json_contract_and_map_operations() {
     assert_eq!(points[0]["occupancy"].as_f64().unwrap(), face.occupancy);
     assert_eq!(points[0]["known"], true);
     let boxes = v["boxes"].as_array().unwrap();
-    let region = mrfmap::rays::Aabb::parse("-0.2,-0.2,0.1,0.2,0.2,0.5").unwrap();
+    let region = mrfmap::map::Aabb::parse("-0.2,-0.2,0.1,0.2,0.2,0.5").unwrap();
     let b = query_box(&map, &region, &opts).unwrap();
     assert_eq!(boxes[0]["unknown"].as_u64().unwrap(), b.unknown);
     assert_eq!(boxes[0]["occupied"].as_u64().unwrap(), b.occupied);
@@ -963,6 +963,22 @@ fn laser_log_build_grid2d_view_and_experiment() {
         let o = run(&["view", s(&map), "-o", s(&png)]);
         assert!(o.status.success() && png.is_file(), "{}", stderr(&o));
     }
+    // A beam without a return (81.9 m: a SICK's "no return") clears 5 m by default, and up
+    // to the laser's range with --miss-range inf.
+    let miss = dir.join("miss.log");
+    std::fs::write(&miss, "FLASER 3 1.0 81.9 1.0 0 0 0 0 0 0 1 h 1\n").unwrap();
+    let reach = |extra: &[&str]| {
+        let o = run(&[&["build", s(&miss), "--resolution", "0.1", "-o", s(&map), "-q"], extra].concat());
+        assert!(o.status.success(), "{}", stderr(&o));
+        let o = run(&["info", s(&map), "--json"]);
+        let v: serde_json::Value = serde_json::from_str(&stdout(&o)).unwrap();
+        v["bounds"][1][0].as_f64().unwrap()
+    };
+    // The miss is 30 degrees right of ahead: x reaches 5 cos 30 = 4.33 m, or 80 cos 30 = 69 m.
+    let (short, long) = (reach(&[]), reach(&["--miss-range", "inf"]));
+    assert!((4.2..4.5).contains(&short) && (68.0..70.0).contains(&long), "{short} {long}");
+    assert!(!run(&["build", s(&miss), "--resolution", "0.1", "-o", s(&map), "--miss-range", "-1"]).status.success());
+
     // The MRF takes depth images only: said before any memory estimate (which cannot size an
     // MRF from scans and used to refuse it as needing hundreds of GiB).
     let o = run(&["--max-memory", "1M", "build", s(&log), "--engine", "mrf", "--resolution", "0.05", "-o", s(&map)]);

@@ -18,7 +18,8 @@ use mrfmap::outputs::{
     LiveEngine, OctomapFormat, PlyOptions, PointAnswer, QueryOptions, VoxelSource, check_path, query_box, query_points,
     query_polyline, query_segments, write_octomap, write_ply,
 };
-use mrfmap::rays::{Aabb, RayLimits};
+use mrfmap::map::Aabb;
+use mrfmap::rays::RayLimits;
 use mrfmap::source::bag::{Bag, BagOptions, depth_index, for_each_frame};
 use nalgebra::{Matrix3, Rotation3, Translation3, UnitQuaternion};
 use numpy::{PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2};
@@ -135,7 +136,7 @@ impl Mapper {
     /// refuses a build: `MemoryError`, before any allocation.
     fn check_memory(&self, extent: Option<Extent>) -> PyResult<()> {
         let advice = "use a coarser resolution or a max_range";
-        check_build(&self.config, extent, 1, advice).map_err(|e| PyMemoryError::new_err(e.to_string()))
+        check_build(&self.config, extent, advice).map_err(|e| PyMemoryError::new_err(e.to_string()))
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, Inner> {
@@ -244,8 +245,7 @@ impl Mapper {
             camera: self.camera,
             noise: self.noise.clone(),
         };
-        let position = frame.pose.translation.vector.into();
-        let extent = frames_extent(std::iter::once(position), std::slice::from_ref(&frame), 1, &self.config);
+        let extent = frames_extent([frame.pose], std::slice::from_ref(&frame), &self.config);
         self.check_memory(extent)?;
         let id = py
             .detach(|| match (&mut *self.lock(), budget) {

@@ -111,15 +111,36 @@ fn coffin_world_model_is_recovered() {
     let pct = |v: &[f64], q: f64| v[((v.len() - 1) as f64 * q) as usize];
     let n = out.fits.iter().filter(|&&f| f == PatchFit::Fitted).count();
     let adjusted = out.fits.iter().filter(|&&f| f == PatchFit::Adjusted).count();
+    let implausible = out.fits.iter().filter(|&&f| f == PatchFit::Implausible).count();
     println!(
-        "{n} patches fitted, {adjusted} adjusted; over their bins: |bias error| median {:.2} mm, p90 {:.2} mm; \
-         std error median {:.1}%, p90 {:.1}%",
+        "{n} patches fitted, {adjusted} adjusted, {implausible} adjusted as their fit was implausible; over their \
+         bins: |bias error| median {:.2} mm, p90 {:.2} mm; std error median {:.1}%, p90 {:.1}%",
         pct(&bias_err, 0.5) * 1e3,
         pct(&bias_err, 0.9) * 1e3,
         pct(&std_err, 0.5) * 100.0,
         pct(&std_err, 0.9) * 100.0
     );
-    assert!(n >= 200, "only {n} patches have enough depth bins");
+    // Patches with enough bins for their own fit, and most of those fits plausible (the rest
+    // are patches that saw a narrow range of depths, extrapolated).
+    assert!(n + implausible >= 200, "only {} patches have enough depth bins", n + implausible);
+    // Whatever a patch ended with is plausible at every calibrated depth: 114 patches' own
+    // quadratics, fitted to the far depths their image rows see, reach negative or huge stds
+    // at the 2 m the others start at (the issue found stds of metres at 2 m).
+    let depths = out.bins.iter().flatten().map(|b| b.depth);
+    let (lo, hi) = depths.fold((f64::INFINITY, 0.0f64), |(lo, hi), z| (lo.min(z), hi.max(z)));
+    for i in 0..out.fits.len() {
+        let (u, v) = ((i as u32 % patches.cols) * 20 + 10, (i as u32 / patches.cols) * 20 + 10);
+        for k in 0..=16 {
+            let z = lo + (hi - lo) * k as f64 / 16.0;
+            let (_, s) = out.model.bias_std(u, v, z);
+            let agg = out.model.std.eval(z).max(1e-3);
+            assert!(
+                s > 0.0 && s <= 4.0 * agg + 1e-9,
+                "patch {i} ({:?}) at {z} m: std {s}, aggregate {agg}",
+                out.fits[i]
+            );
+        }
+    }
     assert!(pct(&bias_err, 0.5) < 0.005 && pct(&std_err, 0.5) < 0.05);
     assert!(pct(&bias_err, 0.9) < 0.015 && pct(&std_err, 0.9) < 0.15);
 }

@@ -4,10 +4,10 @@
 
 use mrfmap::frames::Frame;
 use mrfmap::inference::{EngineConfig, EngineKind, LogOddsParams, new_engine};
+use mrfmap::map::Aabb;
 use mrfmap::map::{Map, MapVoxel, VoxelState};
 use mrfmap::outputs::{LiveEngine, QueryOptions, query_box, query_point, query_segment};
 use mrfmap::random::Rng;
-use mrfmap::rays::Aabb;
 use mrfmap::source::Scene;
 
 /// A box on a floor seen from four sides by a small camera.

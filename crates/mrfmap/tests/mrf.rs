@@ -507,7 +507,8 @@ fn weak_evidence_is_unknown() {
 #[test]
 fn a_surface_outside_the_bounds_is_not_pulled_into_them() {
     use mrfmap::inference::Allocation;
-    use mrfmap::rays::{Aabb, RayLimits};
+    use mrfmap::map::Aabb;
+    use mrfmap::rays::RayLimits;
     let s = scene(&format!(
         "{SMALL_CAMERA}[noise]\nbias = [0.0]\nstd = [0.03]\n[[box]]\nmin = [2.02, -4.0, -1.0]\nmax = [2.3, 4.0, 1.0]\n\
          [[view]]\neye = [0.0, 0.0, 0.0]\ntarget = [1.0, 0.0, 0.0]\n"

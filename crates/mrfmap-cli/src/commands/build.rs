@@ -13,8 +13,9 @@ use mrfmap::inference::{
     Allocation, Budget, CrmParams, Engine, EngineConfig, EngineKind, Extent, KeyframeSelection, LogOddsParams, Marking,
     MrfEngine, MrfParams, check_build, frames_extent, new_engine, scan_extent,
 };
+use mrfmap::map::Aabb;
 use mrfmap::map::Map;
-use mrfmap::rays::{Aabb, RayLimits};
+use mrfmap::rays::RayLimits;
 #[cfg(feature = "bags")]
 use mrfmap::source::bag::{Bag, BagFrames, BagOptions, bag_frames, bag_scans, depth_index};
 use mrfmap::source::{BeamSpacing, CarmenLog, CarmenOptions, Dataset, Misses};
@@ -164,9 +165,15 @@ pub struct LaserOptions {
     /// Laser logs: FLASER/RLASER ranges at or beyond this are misses (no return).
     #[arg(long, default_value_t = 80.0, value_parser = super::positive)]
     pub laser_max_range: f64,
-    /// Laser logs: misses clear space up to the maximum range (free) or are dropped (ignore).
+    /// Laser logs: misses clear space up to --miss-range (free) or are dropped (ignore).
     #[arg(long, default_value = "free", value_parser = ["free", "ignore"])]
     pub misses: String,
+    /// Laser logs: how far a miss clears space (metres; `inf`: up to --laser-max-range, as
+    /// OctoMap reads a max-range beam). Default 5, Cartographer's `missing_data_ray_length`:
+    /// a miss is as often glass, a dark or grazing wall as open space, and 80 m of free space
+    /// through it would clear walls behind; 5 m clears a room's open floor.
+    #[arg(long, default_value_t = 5.0, value_parser = super::positive_or_infinite)]
+    pub miss_range: f64,
     /// Laser logs: range noise std in metres for CRM (constant; --noise replaces it).
     #[arg(long, default_value_t = 0.03, value_parser = super::positive)]
     pub laser_std: f64,
@@ -202,8 +209,11 @@ impl LaserOptions {
             .step_by(self.scans_every as usize)
             .enumerate()
             .map(|(i, r)| {
-                r.to_scan(i, 0.5 * resolution, self.beams_every as usize, misses, noise.clone())
-                    .with_context(|| format!("{} line {}", log.path.display(), r.line))
+                let mut scan = r
+                    .to_scan(i, 0.5 * resolution, self.beams_every as usize, misses, noise.clone())
+                    .with_context(|| format!("{} line {}", log.path.display(), r.line))?;
+                scan.max_range = scan.max_range.min(self.miss_range);
+                Ok(scan)
             })
             .collect()
     }
@@ -320,9 +330,9 @@ impl BagArgs {
             let all: Vec<usize> = (0..index.frames.len()).collect();
             posed(path, &bag_options.depth_topic, all, &index.skipped)?;
             let indices = select_frames(index.frames.len(), frames, exclude)?;
-            let positions = indices.iter().map(|&i| index.frames[i].1.translation.vector.into());
-            let extent = frames_extent(positions, &index.sample, indices.len(), config);
-            check_build(config, extent, indices.len(), BUILD_ADVICE)?;
+            let poses = indices.iter().map(|&i| index.frames[i].1);
+            let extent = frames_extent(poses, &index.sample, config);
+            check_build(config, extent, BUILD_ADVICE)?;
             tracing::info!(
                 "{}: {} of {} depth images, engine {}, resolution {} m (streamed)",
                 path.display(),
@@ -643,8 +653,8 @@ pub const BUILD_ADVICE: &str = "use a coarser --resolution, or map less with --b
 pub fn dataset_extent(dataset: &Dataset, indices: &[usize], config: &EngineConfig) -> Result<Option<Extent>> {
     let step = indices.len().div_ceil(SAMPLE_FRAMES).max(1);
     let sampled = indices.iter().step_by(step).map(|&i| dataset.frame(i)).collect::<mrfmap::Result<Vec<_>>>()?;
-    let positions = indices.iter().map(|&i| dataset.frames()[i].pose.translation.vector.into());
-    Ok(frames_extent(positions, &sampled, indices.len(), config))
+    let poses = indices.iter().map(|&i| dataset.frames()[i].pose);
+    Ok(frames_extent(poses, &sampled, config))
 }
 
 /// Integrates the readings `indices` (fetched through `reading`) with the engine `config`
@@ -804,7 +814,7 @@ pub fn run(a: Args) -> Result<()> {
         let scans = a.bag.scans(&a.dataset, topic, a.options.noise.as_deref())?;
         let indices = select_frames(scans.len(), &a.frames, &a.exclude)?;
         let chosen: Vec<RangeScan> = indices.iter().map(|&i| scans[i].clone()).collect();
-        check_build(&config, scan_extent(&chosen, &config), chosen.len(), BUILD_ADVICE)?;
+        check_build(&config, scan_extent(&chosen, &config), BUILD_ADVICE)?;
         tracing::info!("{}: {} of {} scans, engine {kind}", a.dataset.display(), indices.len(), scans.len());
         (build_map(&indices, &config, |i| Ok(scans[i].clone()))?, indices)
     } else if BagArgs::is_bag(&a.dataset) {
@@ -817,7 +827,7 @@ pub fn run(a: Args) -> Result<()> {
         let scans = a.laser.scans(&log, a.resolution, a.options.noise.as_deref())?;
         let indices = select_frames(scans.len(), &a.frames, &a.exclude)?;
         let chosen: Vec<RangeScan> = indices.iter().map(|&i| scans[i].clone()).collect();
-        check_build(&config, scan_extent(&chosen, &config), chosen.len(), BUILD_ADVICE)?;
+        check_build(&config, scan_extent(&chosen, &config), BUILD_ADVICE)?;
         tracing::info!(
             "{}: {} of {} laser scans, engine {kind}, resolution {} m",
             a.dataset.display(),
@@ -829,7 +839,7 @@ pub fn run(a: Args) -> Result<()> {
     } else {
         let dataset = a.options.open(&a.dataset)?;
         let indices = select_frames(dataset.len(), &a.frames, &a.exclude)?;
-        check_build(&config, dataset_extent(&dataset, &indices, &config)?, indices.len(), BUILD_ADVICE)?;
+        check_build(&config, dataset_extent(&dataset, &indices, &config)?, BUILD_ADVICE)?;
         tracing::info!(
             "{}: {} of {} frames, engine {kind}, resolution {} m",
             a.dataset.display(),

@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 use mrfmap::atomic_file::write_atomic;
-use mrfmap::frames::{CalibrationOptions, Calibrator, Camera, NoiseModel, PatchFit};
+use mrfmap::frames::{CalibrationOptions, Calibrator, Camera, IMPLAUSIBLE, NoiseModel, PatchFit};
 use mrfmap::source::read_depth_png;
 
 #[derive(clap::Args)]
@@ -135,14 +135,25 @@ pub fn run(a: Args) -> Result<()> {
         result.samples,
         100.0 * result.outliers as f64 / result.samples.max(1) as f64
     );
+    let count = |kind: PatchFit| result.fits.iter().filter(|&&f| f == kind).count();
+    if count(PatchFit::Implausible) > 0 {
+        tracing::warn!(
+            "{} patches' own polynomials were implausible in the calibrated depths (std not positive or over {}x \
+             the aggregate's, or bias that many aggregate stds off; typically a patch that saw a narrow range of \
+             depths): they use the aggregate adjusted to their bins instead",
+            count(PatchFit::Implausible),
+            IMPLAUSIBLE
+        );
+    }
     println!(
         "patches: {} x {} of {} px, {} fitted, {} adjusted (aggregate shifted and scaled to their few depth bins), \
-         {} without data use the aggregate{}",
+         {} adjusted as their own fit was implausible, {} without data use the aggregate{}",
         patches.rows,
         patches.cols,
         patches.size,
-        result.fits.iter().filter(|&&f| f == PatchFit::Fitted).count(),
-        result.fits.iter().filter(|&&f| f == PatchFit::Adjusted).count(),
+        count(PatchFit::Fitted),
+        count(PatchFit::Adjusted),
+        count(PatchFit::Implausible),
         fallback.len(),
         if fallback.is_empty() {
             String::new()

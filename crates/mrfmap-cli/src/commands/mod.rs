@@ -31,6 +31,15 @@ pub fn positive(s: &str) -> Result<f64, String> {
     }
 }
 
+/// clap parser for a positive number or `inf`.
+pub fn positive_or_infinite(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v > 0.0 && !v.is_nan() => Ok(v),
+        Ok(v) => Err(format!("must be a positive number or inf, got {v}")),
+        Err(e) => Err(e.to_string()),
+    }
+}
+
 /// clap parser for an occupancy threshold: a probability in `[0, 1)` (nothing is above 1, so a
 /// larger threshold would select nothing and give an empty output).
 pub fn threshold(s: &str) -> Result<f32, String> {

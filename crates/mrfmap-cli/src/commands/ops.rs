@@ -5,9 +5,9 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 
 use anyhow::{Context, Result};
+use mrfmap::map::Aabb;
 use mrfmap::map::{Map, VoxelState};
 use mrfmap::outputs::{write_changes_ply, write_map_server};
-use mrfmap::rays::Aabb;
 
 /// The input map and the box of `crop` and `clear`.
 #[derive(clap::Args)]

@@ -4,11 +4,11 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
+use mrfmap::map::Aabb;
 use mrfmap::map::Map;
 use mrfmap::outputs::{
     QueryOptions, SegmentAnswer, check_path, query_box, query_points, query_polyline, query_segments,
 };
-use mrfmap::rays::Aabb;
 use serde_json::{Value, json};
 
 #[derive(clap::Args)]

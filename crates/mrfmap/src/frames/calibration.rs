@@ -13,7 +13,9 @@
 //! 4. sets the aggregate to the coefficient-wise median over the fitted patches;
 //! 5. patches with too few populated bins for their own polynomials (fewer than `degree + 2`)
 //!    but some data get the aggregate *adjusted* to their bins: its bias shifted by their
-//!    weighted mean offset, its std scaled by their weighted mean ratio. Patches with no data
+//!    weighted mean offset, its std scaled by their weighted mean ratio. So do patches whose
+//!    own fit is implausible anywhere in the calibrated depth range ([`IMPLAUSIBLE`]: a
+//!    quadratic through a few close bins can reach metres outside them). Patches with no data
 //!    get the aggregate as it is.
 //!
 //! Memory is bounded: each (patch, bin) cell keeps at most [`RESERVOIR`] residuals, a uniform
@@ -28,6 +30,14 @@ pub const RESERVOIR: usize = 2048;
 
 /// Residuals more than this many robust standard deviations from the bin median are outliers.
 const CLIP_SIGMAS: f64 = 4.0;
+
+/// A patch's fit is implausible where its std is not positive or this many times the
+/// aggregate's, or its bias this many aggregate stds plus a tenth of the depth from the
+/// aggregate's bias: the few bins of a patch that
+/// sees a narrow range of depths let a quadratic go anywhere outside them (a 9 m std at 2 m
+/// was seen on coffin-world). Real patches differ from the median by far less (D435: std
+/// within 2x over the image).
+pub const IMPLAUSIBLE: f64 = 4.0;
 
 /// Settings of a calibration.
 #[derive(Clone, Debug, PartialEq)]
@@ -97,6 +107,10 @@ pub enum PatchFit {
     Fitted,
     /// The aggregate, shifted (bias) and scaled (std) to match its few bins.
     Adjusted,
+    /// Its own fit was implausible somewhere in the calibrated depth range (a std that is not
+    /// positive or over [`IMPLAUSIBLE`] times the aggregate's, or a bias far from the
+    /// aggregate's, see there): the aggregate adjusted to its bins instead.
+    Implausible,
     /// No data: the aggregate.
     Aggregate,
 }
@@ -253,14 +267,32 @@ impl Calibrator {
             Poly(c)
         };
         let aggregate = (median_poly(|f| f.0), median_poly(|f| f.1));
+        // The depths calibrated, where every patch's fit must be plausible.
+        let depths = all_bins.iter().flatten().map(|b| b.depth);
+        let (lo, hi) = depths.fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), z| (lo.min(z), hi.max(z)));
+        let plausible = |(bias, std): &(Poly, Poly)| {
+            (0..=16).all(|k| {
+                let z = lo + (hi - lo) * k as f64 / 16.0;
+                let agg_std = aggregate.1.eval(z).max(1e-3);
+                let s = std.eval(z);
+                // Biases differ across an image by more than stds do at close range (a D435's
+                // by centimetres where its std is millimetres): a tenth of the depth more.
+                let bias_slack = IMPLAUSIBLE * agg_std + 0.1 * z;
+                s > 0.0 && s <= IMPLAUSIBLE * agg_std && (bias.eval(z) - aggregate.0.eval(z)).abs() <= bias_slack
+            })
+        };
         let mut kinds = Vec::with_capacity(fits.len());
         let polys: Vec<(Poly, Poly)> = fits
             .iter()
             .zip(&all_bins)
             .map(|(fit, bins)| match fit {
-                Some(f) => {
+                Some(f) if plausible(f) => {
                     kinds.push(PatchFit::Fitted);
                     *f
+                }
+                Some(_) => {
+                    kinds.push(PatchFit::Implausible);
+                    adjust(aggregate, bins)
                 }
                 None if !bins.is_empty() => {
                     kinds.push(PatchFit::Adjusted);
@@ -423,6 +455,39 @@ mod tests {
             assert!((b - bias.eval(z)).abs() < 2e-3, "bias at {z}: {b} vs {}", bias.eval(z));
             assert!((s / std.eval(z) - 1.0).abs() < 0.1, "std at {z}: {s} vs {}", std.eval(z));
         }
+    }
+
+    #[test]
+    fn a_patch_fit_that_runs_off_outside_its_few_depths_falls_back_to_the_aggregate() {
+        // Five 4x4 patches in a row. The first four see 1-3 m with a 1 cm bias and 1 cm std;
+        // the fifth sees only 1.0-1.3 m, with a bias that rises steeply there (as a patch on
+        // a depth edge can): its own quadratic reaches metres of bias at 3 m.
+        let opts = CalibrationOptions { patch: 4, min_samples: 8, ..Default::default() };
+        let mut cal = Calibrator::new(opts).unwrap();
+        let mut rng = Rng::new(3);
+        for i in 0..84 {
+            let far = 1.0 + 2.0 * (i % 21) as f64 / 20.0;
+            let near = 1.05 + 0.1 * (i % 4) as f64;
+            let truth: Vec<f32> = (0..80).map(|k| if k % 20 >= 16 { near } else { far } as f32).collect();
+            let noisy = truth
+                .iter()
+                .enumerate()
+                .map(|(k, &z)| {
+                    let z = z as f64;
+                    let bias = if k % 20 >= 16 { 3.0 * (z - 1.0).powi(2) } else { 0.01 };
+                    (z + bias + 0.01 * rng.normal()) as f32
+                })
+                .collect();
+            cal.add(&DepthImage::from_vec(20, 4, noisy).unwrap(), &DepthImage::from_vec(20, 4, truth).unwrap())
+                .unwrap();
+        }
+        let out = cal.finish().unwrap();
+        assert_eq!(out.fits, [[PatchFit::Fitted; 4].as_slice(), &[PatchFit::Implausible]].concat());
+        // The fifth patch: the aggregate shifted to its bins' mean bias, not metres off at 3 m.
+        let (b, s) = out.model.bias_std(18, 2, 3.0);
+        assert!(b.abs() < 0.5 && s > 0.0 && s < 0.05, "bias {b}, std {s}");
+        let own = fit_bins(&out.bins[4], 2).unwrap();
+        assert!(own.0.eval(3.0) > 5.0, "its own fit: {:?}", own.0);
     }
 
     #[test]

@@ -13,7 +13,9 @@ mod scan;
 
 use std::sync::Arc;
 
-pub use calibration::{BinStats, Calibration, CalibrationOptions, Calibrator, PatchFit, RESERVOIR, weighted_polyfit};
+pub use calibration::{
+    BinStats, Calibration, CalibrationOptions, Calibrator, IMPLAUSIBLE, PatchFit, RESERVOIR, weighted_polyfit,
+};
 pub use camera::{Camera, MAX_PIXELS, MAX_SIDE};
 pub use depth::DepthImage;
 pub use noise::{Intervals, NoiseModel, PatchModel, Poly, RayLikelihood, STD_FLOOR, TAIL_CUTOFF, upper_tail};

@@ -166,6 +166,16 @@ impl CrmBrick {
             return i;
         }
         let i = self.means.len();
+        // Grow by a quarter (at least 8 voxels), not by doubling: a brick's pdfs are most of a
+        // CRM map, and doubling leaves a quarter of them spare on average (measured peaks: 447
+        // instead of 528 MiB at 0.01 m in the `memory_estimate` test's room, 2.45 instead of
+        // 2.56 GB for intel-lab's laser log at 0.05 m). Still geometric: copies stay linear.
+        if i == self.means.capacity() {
+            let more = (i / 4).max(8);
+            self.means.reserve_exact(more);
+            self.pending.reserve_exact(more);
+            self.pdfs.reserve_exact(more * k);
+        }
         self.local[slot] = i as u16;
         self.means.push(0.5);
         self.pending.push(0);

@@ -1,192 +1,436 @@
 //! How much memory a build will take, estimated before it starts (checked against
 //! [`crate::limits::max_memory`]).
 //!
-//! A map holds the 8x8x8 bricks its rays cross. Their number is bounded twice: by the volume
-//! the rays span (the box around the sensor positions and ray end points, cut to the map's
-//! bounds) over a brick's volume, and by the total ray length over a brick's
-//! edge (twice: a ray crosses a brick at a slant). The smaller bound wins; indoor scenes are
-//! volume-bound, long trajectories ray-bound. Bytes per brick were measured on coffin-world
-//! and the demo room (BENCHMARKS.md) and include each engine's scratch memory: log-odds
-//! 6 KiB, CRM 1 KiB + 4 (particles + 1) bytes per voxel it allocates (512, or fewer in a
-//! map thinner than a brick, such as a planar laser's). The MRF (band allocation)
-//! allocates around depth points only, three bricks per brick holding end points: 5 KiB
-//! each for the marginals (and the values the change log compares with), and per keyframe
-//! 2.5 KiB each for its tiles' messages (10 bytes per voxel a tile's rays reach and 16 per
-//! run of them in one brick; measured on the demo room with 12-byte entries: 2.7 MiB per
-//! keyframe for 299 end-point bricks at 0.05 m). Accurate to a factor of about 2: enough to
-//! refuse a build that cannot fit, not to size a machine.
+//! A map holds the 8x8x8 bricks its rays cross, and CRM a pdf per voxel they cross. Both
+//! counts come from walking a sample of the rays brick by brick ([`frames_extent`],
+//! [`scan_extent`]): up to 512 readings evenly spread over the sequence (every pose, each
+//! with the depth of the decoded sample frame nearest it), and as many of their rays as about
+//! 8 million brick steps allow. Bricks are counted as the walked rays cross them (the gaps
+//! between one reading's walked rays are crossed by the next reading's); voxels are made up
+//! for the pixels and readings not walked, at most 512 per brick (64 in a planar laser's
+//! one-voxel-thick map). The forward-model engines (CRM, MRF) walk each ray to 3 std past its
+//! bias-corrected reading, as they trace it.
+//!
+//! Bytes per brick and per voxel were measured (BENCHMARKS.md, "Memory estimates"): a
+//! log-odds build peaks at 8 KiB per brick (the engine's f32 grid and the finished map's
+//! copy, 8 bytes per voxel); CRM holds 4 (particles + 1) + 5 bytes per voxel, 5 KiB per brick
+//! (a slot table and the map's copy) and, while a frame is applied, 4 KiB per brick it
+//! crosses; the MRF (band allocation) allocates
+//! two bricks per brick holding depth points, 5 KiB each for the marginals (and the values the
+//! change log compares with), and per keyframe 16 bytes per voxel its rays cross in those
+//! bricks (its tiles' entries, found by a second walk once the band is known) and its depth
+//! image. Integrating one reading takes about 40 bytes per pixel besides, and the program
+//! itself [`BASE_MEMORY`]. The estimate is meant to be within 2x of the measured peak (the
+//! test `memory_estimate` checks each engine at 0.05, 0.02 and 0.01 m against the heap a
+//! build takes): enough to refuse a build that cannot fit, not to size a machine to the
+//! megabyte.
+
+use std::ops::ControlFlow;
+
+use rustc_hash::{FxHashMap, FxHashSet};
 
 use super::{EngineConfig, EngineKind};
 use crate::error::Result;
-use crate::frames::{Frame, RangeScan};
+use crate::frames::{Frame, NoiseModel, Pose, RangeScan, default_noise_model};
 use crate::limits;
-use crate::map::BRICK_EDGE;
+use crate::map::{BRICK_EDGE, BrickKey, VoxelKey};
+use crate::rays::{FrameRays, PixelRay, ScanRays, Walk, pixel_direction, pose_parts};
 
-/// Pixels (per side) between the sampled pixels of [`frames_extent`].
-const SAMPLE_STRIDE: u32 = 8;
+/// Estimated peak memory in bytes of building `config`'s map from the readings of `extent`
+/// (see the module's documentation for what is counted).
+pub fn estimate_memory(config: &EngineConfig, extent: &Extent) -> f64 {
+    let scratch = SCRATCH_PER_PIXEL * extent.pixels;
+    BASE_MEMORY
+        + scratch
+        + match config.kind {
+            EngineKind::LogOdds => LOGODDS_BRICK * extent.bricks,
+            EngineKind::Crm => {
+                let per_voxel = 4.0 * (config.crm.particles as f64 + 1.0) + CRM_VOXEL;
+                CRM_BRICK * extent.bricks + per_voxel * extent.voxels + CRM_FRAME_BRICK * extent.bricks_per_reading
+            }
+            EngineKind::Mrf => {
+                let bricks = match config.mrf.allocation {
+                    super::Allocation::Band => BAND * extent.surface_bricks,
+                    super::Allocation::Full => extent.bricks,
+                };
+                let keyframe = MRF_ENTRY * extent.entries_per_reading + MRF_FRAME_PER_PIXEL * extent.pixels;
+                MRF_BRICK * bricks + extent.readings * keyframe
+            }
+        }
+}
 
-/// Where the sensors were and how far they saw.
-#[derive(Clone, Copy, Debug, PartialEq)]
+/// Brick steps the probe walk of [`frames_extent`] and [`scan_extent`] may take in all: about
+/// a tenth of a second, and at most this many bricks (24 bytes each) held while counting.
+const STEP_BUDGET: f64 = 8e6;
+
+/// Readings walked at most; more are subsampled evenly along the sequence.
+const MAX_PROBES: usize = 512;
+
+/// Rays walked per reading at least (the budget is met by walking fewer readings below this).
+const MIN_RAYS: f64 = 64.0;
+
+/// Where the sensors were, and what their rays will allocate.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct Extent {
-    /// Lower corner of the reachable box.
+    /// Lower corner of the box the rays reach (cut to the map's bounds).
     pub min: [f64; 3],
     /// Upper corner.
     pub max: [f64; 3],
-    /// Summed length of every ray that will be traced (metres).
-    pub ray_length: f64,
-    /// Bricks holding ray end points: over all readings sampled, and per sampled reading
-    /// (0 when unknown). What the MRF allocates: bricks around depth points only.
-    pub surface_bricks: (f64, f64),
+    /// Bricks the rays cross (estimated: see [`frames_extent`]).
+    pub bricks: f64,
+    /// Voxels the rays cross (estimated likewise; at most 512 per brick).
+    pub voxels: f64,
+    /// Bricks one reading's rays cross, on average.
+    pub bricks_per_reading: f64,
+    /// Bricks holding ray end points. What the MRF allocates: bricks around depth points
+    /// only.
+    pub surface_bricks: f64,
+    /// Voxels per reading its rays cross in the bricks holding their end points, once per
+    /// pixel column (what an MRF keyframe's tiles hold).
+    pub entries_per_reading: f64,
+    /// Readings the engine keeps: the MRF's keyframes, or all.
+    pub readings: f64,
+    /// Pixels (or beams) of the largest reading.
+    pub pixels: f64,
 }
 
 impl Extent {
-    /// The box around `points` (sensor positions and ray end points, or a sample of them),
-    /// cut to the config's bounds, with the total ray length. `None` without points.
-    pub fn new(points: impl IntoIterator<Item = [f64; 3]>, ray_length: f64, config: &EngineConfig) -> Option<Self> {
-        let (mut min, mut max) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
-        for p in points.into_iter().filter(|p| p.iter().all(|v| v.is_finite())) {
-            for a in 0..3 {
-                min[a] = min[a].min(p[a]);
-                max[a] = max[a].max(p[a]);
-            }
-        }
-        if !min[0].is_finite() {
-            return None;
-        }
-        if let Some(b) = config.limits.bounds {
-            for a in 0..3 {
-                min[a] = min[a].max(b.min[a]);
-                max[a] = max[a].min(b.max[a]).max(min[a]);
-            }
-        }
-        Some(Extent { min, max, ray_length, surface_bricks: (0.0, 0.0) })
-    }
-
-    /// Records the bricks (at `resolution`) holding the end points of each sampled reading.
-    pub fn with_surface(mut self, readings: &[Vec<[f64; 3]>], resolution: f64) -> Self {
-        let key = |p: &[f64; 3]| crate::map::VoxelKey::from_point(*p, resolution).brick();
-        let all: rustc_hash::FxHashSet<_> = readings.iter().flatten().map(key).collect();
-        let per: f64 =
-            readings.iter().map(|r| r.iter().map(key).collect::<rustc_hash::FxHashSet<_>>().len() as f64).sum::<f64>()
-                / readings.len().max(1) as f64;
-        self.surface_bricks = (all.len() as f64, per);
-        self
-    }
-
     /// Largest side of the box (metres).
     pub fn size(&self) -> f64 {
         (0..3).map(|a| self.max[a] - self.min[a]).fold(0.0, f64::max)
     }
+}
 
-    /// Bricks of edge `8 resolution` the rays can touch.
-    pub fn bricks(&self, resolution: f64) -> f64 {
-        let edge = BRICK_EDGE as f64 * resolution;
-        let by_volume: f64 = (0..3).map(|a| ((self.max[a] - self.min[a]) / edge).ceil() + 1.0).product();
-        let by_rays = 2.0 * self.ray_length / edge;
-        by_volume.min(by_rays.max(1.0))
+/// Counts the bricks and voxels a sample of rays crosses.
+///
+/// Rays are walked brick by brick, and the bricks they cross are counted. Rays not walked
+/// are not made up for in bricks: the walked ones are dense at the brick scale, and across
+/// readings the gaps of one are the rays of another (crediting each walked ray with the bricks
+/// around it counted those twice: 1.9x a laser log's bricks). Voxels are made up for: a ray
+/// walked `sampled` radians from the next (per image axis; `dims` axes: 2 for a camera, 1 for
+/// a planar scan) crosses at range `d`, per axis, `min(max(1, sampled d / r), sampled /
+/// native)` lines of voxels (every voxel of its tube where the sensor's own rays, `native`
+/// radians apart, are denser than voxels; one line per ray where they are sparser), times the
+/// `readings` it stands for along the sequence; a brick holds at most its voxels.
+struct Probe<'a> {
+    config: &'a EngineConfig,
+    edge: f64,
+    /// Per brick crossed: voxels the rays crossed in it, and the last reading that crossed it.
+    bricks: FxHashMap<BrickKey, (f32, usize)>,
+    /// Sum over readings of the bricks each crossed.
+    crossed: f64,
+    /// Brick steps walked (and planned for the ray being walked).
+    steps: f64,
+    /// Set when the steps outgrew the budget: the walk stopped.
+    cut: bool,
+    /// Bricks holding an end point.
+    surface: FxHashSet<BrickKey>,
+    /// Set for a second walk: the bricks the MRF allocates, whose voxels the rays cross are
+    /// counted in `entries` instead of all else.
+    band: Option<FxHashSet<BrickKey>>,
+    /// Sum over readings of the voxels their rays cross in the band (each voxel once per pixel
+    /// column: the MRF's tile entries).
+    entries: f64,
+    readings: usize,
+    min: [f64; 3],
+    max: [f64; 3],
+}
+
+impl<'a> Probe<'a> {
+    fn new(config: &'a EngineConfig) -> Self {
+        Probe {
+            config,
+            edge: BRICK_EDGE as f64 * config.resolution,
+            bricks: FxHashMap::default(),
+            crossed: 0.0,
+            steps: 0.0,
+            cut: false,
+            surface: FxHashSet::default(),
+            band: None,
+            entries: 0.0,
+            readings: 0,
+            min: [f64::INFINITY; 3],
+            max: [f64::NEG_INFINITY; 3],
+        }
     }
 
-    /// Voxels per brick the readings can reach: 512, or fewer where the box is thinner than
-    /// a brick (a planar laser's map is one voxel thick: 64 per brick).
-    pub fn voxels_per_brick(&self, resolution: f64) -> f64 {
-        (0..3).map(|a| (((self.max[a] - self.min[a]) / resolution).floor() + 1.0).min(BRICK_EDGE as f64)).product()
+    fn include(&mut self, p: [f64; 3]) {
+        if p.iter().all(|v| v.is_finite()) {
+            self.min = [0, 1, 2].map(|a| self.min[a].min(p[a]));
+            self.max = [0, 1, 2].map(|a| self.max[a].max(p[a]));
+        }
+    }
+
+    /// Walks one ray of a reading with `noise` (see [`Probe`] for `sampled`, `native`, `dims`
+    /// and `readings`).
+    fn ray(&mut self, ray: &PixelRay, noise: &NoiseModel, sampled: f64, native: f64, dims: i32, readings: f64) {
+        // The forward-model engines stop 3 std past the bias-corrected reading (short of it,
+        // where the bias is larger: 0.9 m at 5 m for a D435).
+        let seg = match self.config.kind {
+            EngineKind::LogOdds => self.config.limits.segment(ray, 0.0),
+            EngineKind::Crm | EngineKind::Mrf => self.config.limits.forward_model_segment(ray, noise),
+        };
+        let Some(seg) = seg else { return };
+        let at = |s: f64| [0, 1, 2].map(|a| ray.origin[a] + s * ray.dir[a]);
+        self.include(at(seg.start));
+        self.include(at(seg.end));
+        let r = self.config.resolution;
+        let lines = sampled / native;
+        // A walk the budget cannot pay for (a resolution far below the scene's scale) stops
+        // here; the estimate then falls back on the box's volume.
+        self.steps += 1.8 * (seg.end - seg.start) / self.edge + 1.0;
+        if self.steps > 4.0 * STEP_BUDGET {
+            self.cut = true;
+            return;
+        }
+        let Some(walk) = Walk::new(ray.origin, ray.dir, self.edge) else { return };
+        if let Some(band) = &self.band {
+            // The second walk: the voxels this ray crosses in the MRF's band (once per pixel
+            // column: where pixels are smaller than voxels, neighbours share columns).
+            let pixels = lines.powi(dims);
+            let mut entries = 0.0;
+            walk.crossings(seg.start, seg.end, |c| {
+                if band.contains(&BrickKey(c.key.0)) {
+                    let own = (native * 0.5 * (c.s_in + c.s_out) / r).min(1.0).powi(dims);
+                    entries += pixels * own * c.length() / r;
+                }
+                ControlFlow::Continue(())
+            });
+            self.entries += entries;
+            return;
+        }
+        let reading = self.readings + 1;
+        walk.crossings(seg.start, seg.end, |c| {
+            let across = (sampled * 0.5 * (c.s_in + c.s_out) / r).max(1.0).min(lines).powi(dims);
+            let cell = self.bricks.entry(BrickKey(c.key.0)).or_default();
+            cell.0 += (c.length() / r * across * readings) as f32;
+            if cell.1 != reading {
+                cell.1 = reading;
+                self.crossed += 1.0;
+            }
+            ControlFlow::Continue(())
+        });
+        // The depth point itself (not the segment's end, 3 std past it and maybe cut by the
+        // bounds: a floor at the box's bottom face).
+        let point = at(ray.range);
+        let limits = &self.config.limits;
+        if limits.surface_range(ray).is_some() && limits.bounds.is_none_or(|b| b.contains(point)) {
+            self.surface.insert(BrickKey(VoxelKey::from_point(point, self.edge).0));
+        }
+    }
+
+    /// Ends a reading's rays.
+    fn next_reading(&mut self) {
+        if self.band.is_none() {
+            self.readings += 1;
+        }
+    }
+
+    /// The extent of `count` readings of `pixels` each: `None` when no ray was walked.
+    fn finish(self, count: usize, pixels: f64) -> Option<Extent> {
+        if !self.min[0].is_finite() {
+            return None;
+        }
+        let (min, max) = (self.min, self.max);
+        let r = self.config.resolution;
+        // Voxels per brick the box allows: 512, or fewer where it is thinner than a brick (a
+        // planar laser's map is one voxel thick: 64 per brick).
+        let per_brick: f64 = (0..3).map(|a| (((max[a] - min[a]) / r).floor() + 1.0).min(BRICK_EDGE as f64)).product();
+        let readings = self.readings.max(1) as f64;
+        let by_volume: f64 = (0..3).map(|a| ((max[a] - min[a]) / self.edge).ceil() + 1.0).product();
+        if self.cut {
+            // Everything in the box, and as many tile entries per pixel as a brick is deep.
+            return Some(Extent {
+                min,
+                max,
+                bricks: by_volume,
+                voxels: by_volume * per_brick,
+                bricks_per_reading: by_volume,
+                surface_bricks: by_volume,
+                entries_per_reading: pixels * BRICK_EDGE as f64,
+                readings: count as f64,
+                pixels,
+            });
+        }
+        let voxels = self.bricks.values().map(|&(v, _)| (v as f64).min(per_brick)).sum();
+        Some(Extent {
+            min,
+            max,
+            bricks: self.bricks.len() as f64,
+            voxels,
+            bricks_per_reading: self.crossed / readings,
+            surface_bricks: self.surface.len() as f64,
+            entries_per_reading: self.entries / readings,
+            readings: count as f64,
+            pixels,
+        })
     }
 }
 
-/// Estimated peak memory in bytes of building `config`'s map from `readings` frames or scans.
+/// Readings to walk of `count`, and per reading a sampling stride for rays of about
+/// `mean_length` metres, so that the walk stays within [`STEP_BUDGET`].
+fn plan(count: usize, rays: f64, mean_length: f64, edge: f64) -> (usize, f64) {
+    let steps = 1.8 * mean_length / edge + 1.0;
+    let probes = count.min(MAX_PROBES).min((STEP_BUDGET / (MIN_RAYS * steps)).max(1.0) as usize).max(1);
+    let per = (STEP_BUDGET / (probes as f64 * steps)).clamp(MIN_RAYS.min(rays.max(1.0)), rays.max(1.0));
+    (probes, rays / per)
+}
+
+/// Where depth frames at `poses` look and what their rays will allocate, from every frame's
+/// pose and the depth of a few decoded `sampled` frames (evenly spread over the sequence):
+/// up to 512 of the poses (for the MRF, of its keyframes), each with the depth of the sampled
+/// frame nearest it in the sequence, are walked brick by brick through as many of their
+/// pixels as the step budget allows. Bricks are counted as crossed; voxels are made up for
+/// the pixels and frames not walked (the module's documentation says how). `None` without
+/// poses or depth.
 ///
 /// ```
-/// use mrfmap::inference::{EngineConfig, EngineKind, Extent, estimate_memory};
-/// let config = EngineConfig::new(EngineKind::LogOdds, 0.02);
-/// let room = Extent::new([[-3.0, -3.0, 0.0], [3.0, 3.0, 3.0]], 1e7, &config).unwrap();
-/// let bytes = estimate_memory(&config, &room, 10);
-/// assert!(bytes > 1e7 && bytes < 1e9, "{bytes}");
-/// let tiny = EngineConfig::new(EngineKind::LogOdds, 1e-9);
-/// assert!(estimate_memory(&tiny, &room, 10) > 1e15);
-/// // CRM keeps a pdf per voxel it allocates: a planar laser's one-voxel-thick map needs an
-/// // eighth of a room's pdfs per brick.
-/// let crm = EngineConfig::new(EngineKind::Crm, 0.05);
-/// let floor = Extent::new([[-3.0, -3.0, 0.0], [3.0, 3.0, 0.0]], 1e7, &crm).unwrap();
-/// let thick = Extent::new([[-3.0, -3.0, 0.0], [3.0, 3.0, 3.0]], 1e7, &crm).unwrap();
-/// assert_eq!(floor.voxels_per_brick(0.05), 64.0);
-/// assert!(estimate_memory(&crm, &floor, 10) < estimate_memory(&crm, &thick, 10) / 8.0);
+/// use mrfmap::frames::{Camera, DepthImage, Frame, Pose};
+/// use mrfmap::inference::{EngineConfig, EngineKind, frames_extent};
+/// let camera = Camera::new(100.0, 100.0, 49.5, 39.5, 100, 80, 1000.0).unwrap();
+/// // A wall 2 m ahead of a camera looking along +z.
+/// let frame = Frame {
+///     index: 0,
+///     timestamp: 0.0,
+///     depth: DepthImage::from_vec(100, 80, vec![2.0; 8000]).unwrap(),
+///     pose: Pose::identity(),
+///     camera,
+///     noise: None,
+/// };
+/// let config = EngineConfig::new(EngineKind::LogOdds, 0.05);
+/// let one = frames_extent([Pose::identity()], std::slice::from_ref(&frame), &config).unwrap();
+/// // The frustum is a pyramid 2 m deep on a 2 x 1.6 m base: it fills a third of the 5 x 4 x 5
+/// // bricks of 0.4 m around it and crosses a good part of the others.
+/// assert!(one.bricks > 33.0 && one.bricks < 100.0, "{}", one.bricks);
+/// // The same frame from ten poses 2 m apart sideways: ten times the bricks, about.
+/// let poses = (0..10).map(|i| Pose::translation(2.0 * i as f64, 0.0, 0.0));
+/// let ten = frames_extent(poses, std::slice::from_ref(&frame), &config).unwrap();
+/// assert!(ten.bricks > 8.0 * one.bricks && ten.bricks <= 10.0 * one.bricks, "{}", ten.bricks);
 /// ```
-pub fn estimate_memory(config: &EngineConfig, extent: &Extent, readings: usize) -> f64 {
-    let per_brick = match config.kind {
-        EngineKind::LogOdds => 6144.0,
-        EngineKind::Crm => {
-            1024.0 + extent.voxels_per_brick(config.resolution) * 4.0 * (config.crm.particles as f64 + 1.0)
-        }
-        EngineKind::Mrf => {
-            // Band allocation: bricks around depth points (and their neighbours), for the
-            // marginals and for each keyframe's tiles.
-            let (all, per) = extent.surface_bricks;
-            if per > 0.0 && config.mrf.allocation == super::Allocation::Band {
-                return BAND * (5120.0 * all + 2560.0 * readings as f64 * per);
-            }
-            6144.0 * (1.0 + readings as f64)
-        }
-    };
-    extent.bricks(config.resolution) * per_brick
-}
-
-/// Where `count` posed depth frames look: every one of their `positions`, and the end points of
-/// every `SAMPLE_STRIDE`-th pixel of the `sampled` frames, whose ray length is scaled up to all.
 pub fn frames_extent(
-    positions: impl Iterator<Item = [f64; 3]>,
+    poses: impl IntoIterator<Item = Pose>,
     sampled: &[Frame],
-    count: usize,
     config: &EngineConfig,
 ) -> Option<Extent> {
-    let max_range = config.limits.max_range.unwrap_or(f64::INFINITY);
-    let mut points: Vec<[f64; 3]> = positions.collect();
-    let mut length = 0.0;
-    let mut surfaces = Vec::new();
+    let mut poses: Vec<Pose> = poses.into_iter().collect();
+    // The MRF keeps its keyframes only.
+    if config.kind == EngineKind::Mrf {
+        poses = config.mrf.keyframes.keep(&poses).into_iter().map(|i| poses[i]).collect();
+    }
+    let first = sampled.first()?;
+    let (pixels, f) = (
+        first.depth.width() as f64 * first.depth.height() as f64,
+        0.5 * (first.camera.fx.abs() + first.camera.fy.abs()),
+    );
+    // The mean ray length, from every 8th pixel of the samples.
+    let (mut length, mut n) = (0.0, 0.0f64);
     for frame in sampled {
-        let cam = &frame.camera;
-        let mut surface = Vec::new();
-        for v in (0..cam.height).step_by(SAMPLE_STRIDE as usize) {
-            for u in (0..cam.width).step_by(SAMPLE_STRIDE as usize) {
-                if let Some(z) = frame.depth.get(u, v) {
-                    let ray = cam.pixel_ray(u as f64, v as f64);
-                    let range = (ray.norm() * z as f64).min(max_range);
-                    length += range;
-                    let end: [f64; 3] = (frame.pose * nalgebra::Point3::from(ray.normalize() * range)).coords.into();
-                    points.push(end);
-                    surface.push(end);
+        let rays = FrameRays::new(frame);
+        for v in (0..frame.depth.height()).step_by(8) {
+            for ray in rays.row(v).step_by(8) {
+                if let Some(seg) = config.limits.segment(&ray, 0.0) {
+                    length += seg.end - seg.start;
                 }
+                n += 1.0;
             }
         }
-        surfaces.push(surface);
     }
-    let scale = (SAMPLE_STRIDE * SAMPLE_STRIDE) as f64 * count as f64 / sampled.len().max(1) as f64;
-    Extent::new(points, length * scale, config).map(|e| e.with_surface(&surfaces, config.resolution))
+    let default_noise = default_noise_model();
+    let mut probe = Probe::new(config);
+    for pose in &poses {
+        probe.include(pose.translation.vector.into());
+    }
+    let (probes, stride) = plan(poses.len(), pixels, length / n.max(1.0), probe.edge);
+    let step = stride.sqrt().ceil().max(1.0) as u32;
+    let (sampled_angle, native) = (step as f64 / f, 1.0 / f);
+    let readings = poses.len() as f64 / probes as f64;
+    let walk = |probe: &mut Probe| {
+        for j in 0..probes {
+            let i = j * poses.len() / probes;
+            let frame = &sampled[(i * sampled.len() / poses.len()).min(sampled.len() - 1)];
+            let (rotation, origin) = pose_parts(&poses[i]);
+            let noise = frame.noise.as_deref().unwrap_or(&default_noise);
+            for v in (0..frame.depth.height()).step_by(step as usize) {
+                for u in (0..frame.depth.width()).step_by(step as usize) {
+                    let Some(z) = frame.depth.get(u, v) else { continue };
+                    let (dir, norm) = pixel_direction(&frame.camera, &rotation, u, v);
+                    let range = z as f64 * norm;
+                    let ray = PixelRay { u, v, origin, dir, range, cz: 1.0 / norm, returned: true };
+                    probe.ray(&ray, noise, sampled_angle, native, 2, readings);
+                }
+            }
+            probe.next_reading();
+        }
+    };
+    walk(&mut probe);
+    // The MRF's tiles hold the voxels their rays cross in the allocated bricks, which are
+    // known only now: the band around end points, or every brick crossed.
+    if config.kind == EngineKind::Mrf {
+        probe.band = Some(match config.mrf.allocation {
+            super::Allocation::Band => probe.surface.clone(),
+            super::Allocation::Full => probe.bricks.keys().copied().collect(),
+        });
+        walk(&mut probe);
+        probe.band = None;
+    }
+    probe.finish(poses.len(), pixels)
 }
 
-/// Where laser scans look: every beam's end point (misses at the maximum range).
+/// Where laser scans look and what their beams will allocate (misses up to the sensor's
+/// range), walked as [`frames_extent`] walks frames: beams are a fan, so each walked beam
+/// stands for its neighbours in one direction only.
 pub fn scan_extent(scans: &[RangeScan], config: &EngineConfig) -> Option<Extent> {
-    let mut points = Vec::new();
-    let mut length = 0.0;
-    for s in scans {
-        points.push(s.pose.translation.vector.into());
-        for b in &s.beams {
-            let r = b.range.unwrap_or(s.max_range).min(config.limits.max_range.unwrap_or(f64::INFINITY));
-            length += r;
-            let d = nalgebra::Vector3::from(b.dir) * r;
-            points.push((s.pose * nalgebra::Point3::from(d)).coords.into());
+    let default_noise = default_noise_model();
+    let mut probe = Probe::new(config);
+    let beams: usize = scans.iter().map(|s| s.beams.len()).sum();
+    let length: f64 = scans
+        .iter()
+        .flat_map(|s| {
+            s.beams.iter().map(|b| b.range.unwrap_or(s.max_range).min(config.limits.max_range.unwrap_or(f64::INFINITY)))
+        })
+        .sum();
+    let per_scan = beams as f64 / scans.len().max(1) as f64;
+    let (probes, stride) = plan(scans.len(), per_scan, length / beams.max(1) as f64, probe.edge);
+    let every = stride.ceil().max(1.0) as usize;
+    let readings = scans.len() as f64 / probes as f64;
+    for j in 0..probes {
+        let scan = &scans[j * scans.len() / probes];
+        probe.include(scan.pose.translation.vector.into());
+        // The fan's spacing: its spread over its gaps.
+        let native = match (scan.beams.first(), scan.beams.last()) {
+            (Some(a), Some(b)) if scan.beams.len() > 1 => {
+                let cos = (0..3).map(|k| a.dir[k] * b.dir[k]).sum::<f64>().clamp(-1.0, 1.0);
+                (cos.acos() / (scan.beams.len() - 1) as f64).max(1e-6)
+            }
+            _ => std::f64::consts::PI,
+        };
+        let rays = ScanRays::new(scan);
+        let noise = scan.noise.as_deref().unwrap_or(&default_noise);
+        for ray in (0..rays.rows()).flat_map(|v| rays.row(v).collect::<Vec<_>>()).step_by(every) {
+            probe.ray(&ray, noise, native * every as f64, native, 1, readings);
         }
+        probe.next_reading();
     }
-    Extent::new(points, length, config)
+    probe.finish(scans.len(), scans.iter().map(|s| s.beams.len()).max().unwrap_or(0) as f64)
 }
 
 /// Refuses a build of `readings` frames or scans spanning `extent` whose memory estimate is
 /// over [`limits::max_memory`] (the error names the estimate, the limit and `advice`), and
 /// warns when a voxel is larger than everything the sensors saw. No extent (nothing seen):
 /// nothing to refuse.
-pub fn check_build(config: &EngineConfig, extent: Option<Extent>, readings: usize, advice: &str) -> Result<()> {
+pub fn check_build(config: &EngineConfig, extent: Option<Extent>, advice: &str) -> Result<()> {
     let Some(extent) = extent else { return Ok(()) };
     let what = format!("a {} map at {} m", config.kind, config.resolution);
-    let estimate = estimate_memory(config, &extent, readings);
+    let estimate = estimate_memory(config, &extent);
+    tracing::debug!(
+        "{what}: memory estimate {} ({:.0} bricks, {:.0} voxels, {:.0} bricks holding end points, {:.0} readings kept, {:.0} tile entries each)",
+        limits::human(estimate),
+        extent.bricks,
+        extent.voxels,
+        extent.surface_bricks,
+        extent.readings,
+        extent.entries_per_reading
+    );
     // Big builds say so before they start (a fine resolution can take minutes and gigabytes).
     if estimate > (1u64 << 30) as f64 {
         tracing::info!(
@@ -194,8 +438,6 @@ pub fn check_build(config: &EngineConfig, extent: Option<Extent>, readings: usiz
             limits::human(estimate),
             limits::human(limits::max_memory() as f64)
         );
-    } else {
-        tracing::debug!("{what}: memory estimate {}", limits::human(estimate));
     }
     limits::check_memory(&what, estimate, advice)?;
     if config.resolution > extent.size() {
@@ -208,6 +450,32 @@ pub fn check_build(config: &EngineConfig, extent: Option<Extent>, readings: usiz
     Ok(())
 }
 
-/// Bricks the MRF's band allocates per brick holding end points (the brick and its neighbours
-/// along the rays; measured 209 MiB for an estimate of about 330 on coffin-world at 0.01 m).
-const BAND: f64 = 3.0;
+/// Bricks the MRF's band allocates per brick holding end points: that brick, and the
+/// neighbours of points within a voxel of a face.
+const BAND: f64 = 2.0;
+
+/// Bytes of a build besides its engine (in every estimate): the program, its libraries and
+/// threads, and the frames decoded for the estimate (a build of a few bricks peaked at 15 MB
+/// resident, 8 of them 640 x 480 frames).
+pub const BASE_MEMORY: f64 = 12.0 * 1048576.0;
+
+/// Bytes per brick of a log-odds map while it is built.
+const LOGODDS_BRICK: f64 = 8192.0;
+/// Bytes per brick of a CRM map besides its voxels: the slot table (1 KiB) and the finished
+/// map's copy (8 bytes for each of its 512 voxels, allocated or not).
+const CRM_BRICK: f64 = 5120.0;
+/// Bytes per CRM voxel besides its pdf: its mean and pending passes.
+const CRM_VOXEL: f64 = 5.0;
+/// Bytes per brick a frame crosses of a CRM frame's update: its passes per slot (2 KiB),
+/// gathered by two blocks of rows on average.
+const CRM_FRAME_BRICK: f64 = 4096.0;
+/// Bytes per MRF brick for the marginals (and the values the change log compares with).
+const MRF_BRICK: f64 = 5120.0;
+/// Bytes per entry of an MRF keyframe's tiles (a voxel one of its tiles' rays reach): 10,
+/// and the runs that index them and the vectors' spare capacity (measured 287 MiB of tiles
+/// for 12 keyframes of 1.49 M estimated entries on coffin-world at 0.02 m: 16.8).
+const MRF_ENTRY: f64 = 16.0;
+/// Bytes per pixel a keyframe keeps (its depth image).
+const MRF_FRAME_PER_PIXEL: f64 = 4.0;
+/// Bytes per pixel of the working memory of integrating one reading.
+const SCRATCH_PER_PIXEL: f64 = 40.0;

@@ -24,7 +24,7 @@ use std::fmt;
 use std::str::FromStr;
 
 pub use crm::{CrmEngine, CrmParams, crm_ray_factors};
-pub use estimate::{Extent, check_build, estimate_memory, frames_extent, scan_extent};
+pub use estimate::{BASE_MEMORY, Extent, check_build, estimate_memory, frames_extent, scan_extent};
 pub use logodds::{LogOddsEngine, LogOddsParams, Marking, SensorModel};
 pub use mrf::{
     Allocation, Budget, DEFAULT_MAX_SWEEPS, DEFAULT_MIN_EVIDENCE, DEFAULT_SWEEPS, DEFAULT_TOLERANCE, KeyframeId,

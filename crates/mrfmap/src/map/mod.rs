@@ -8,6 +8,7 @@
 mod file;
 mod grid;
 mod ops;
+mod region;
 
 pub use grid::{
     BRICK_EDGE, BRICK_VOXELS, Brick, BrickKey, BrickList, Grid, SlotMask, VoxelKey, check_resolution, floor_i32,
@@ -15,6 +16,7 @@ pub use grid::{
 };
 
 pub use ops::{Change, Grid2d, MAX_GRID2D_CELLS, VoxelState};
+pub use region::{Aabb, box_keys};
 
 use std::collections::BTreeMap;
 use std::path::Path;

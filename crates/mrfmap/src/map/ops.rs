@@ -17,10 +17,9 @@
 //!
 //! A voxel only one map knows is copied from it.
 
+use super::{Aabb, box_keys};
 use super::{Grid, Map, MapVoxel, VoxelKey};
 use crate::error::{Error, Result};
-use crate::outputs::box_keys;
-use crate::rays::Aabb;
 
 /// What the map knows of a voxel, as a planner reads it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]

@@ -33,8 +33,9 @@ use std::ops::ControlFlow;
 use rayon::prelude::*;
 
 use crate::frames::{Camera, DepthImage, NoiseModel, Pose};
+use crate::map::Aabb;
 use crate::map::{BRICK_EDGE, BRICK_VOXELS, BrickKey, Map, MapVoxel, OCCUPIED_THRESHOLD};
-use crate::rays::{Aabb, for_each_crossing, pixel_direction, pose_parts};
+use crate::rays::{for_each_crossing, pixel_direction, pose_parts};
 
 /// Occupancies are clamped below 1 by this much so that `alpha` stays finite.
 const P_MAX: f64 = 1.0 - 1e-6;

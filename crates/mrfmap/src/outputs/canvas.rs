@@ -1,11 +1,12 @@
 //! A small raster canvas for PNG figures: lines, boxes, a 5x7 bitmap font and line-plot
-//! axes with labelled ticks. It exists so that plots (noise curves, scaling curves) carry
+//! axes with labelled ticks; and the one PNG writer every RGB picture goes through
+//! ([`write_rgb_png`]). It exists so that plots (noise curves, scaling curves) carry
 //! their numbers without a plotting or font dependency.
 
 use std::path::Path;
 
-use super::pictures::write_rgb_png;
-use crate::error::Result;
+use crate::atomic_file::write_atomic;
+use crate::error::{Error, Result};
 
 /// An RGB colour.
 pub type Rgb = [u8; 3];
@@ -190,6 +191,21 @@ impl Canvas {
     pub fn save(&self, path: &Path) -> Result<()> {
         write_rgb_png(path, self.width, self.height, &self.rgb)
     }
+}
+
+/// Writes 8-bit RGB pixels (row-major, 3 bytes each) as a PNG.
+pub fn write_rgb_png(path: &Path, width: u32, height: u32, rgb: &[u8]) -> Result<()> {
+    if rgb.len() != width as usize * height as usize * 3 {
+        return Err(Error::Invalid(format!("{}: pixel buffer does not match {width}x{height}", path.display())));
+    }
+    write_atomic(path, |w| {
+        let mut enc = png::Encoder::new(w, width, height);
+        enc.set_color(png::ColorType::Rgb);
+        enc.set_depth(png::BitDepth::Eight);
+        let mut writer = enc.write_header().map_err(std::io::Error::other)?;
+        writer.write_image_data(rgb).map_err(std::io::Error::other)?;
+        writer.finish().map_err(std::io::Error::other)
+    })
 }
 
 /// The smallest tick step of 1, 2 or 5 times a power of ten that is at least `raw`.

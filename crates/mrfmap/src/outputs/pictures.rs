@@ -7,28 +7,13 @@ use std::io::Write;
 use std::path::Path;
 
 use super::accuracy::{PixelClass, ProfileStep, RayVerdict, ViewScore};
-use super::canvas::{Canvas, PlotArea, Rgb, nice_step};
+use super::canvas::{Canvas, PlotArea, Rgb, nice_step, write_rgb_png};
 use super::truth::{VoxelTruth, mean_sigma, true_occupancy};
 use crate::atomic_file::write_atomic;
 use crate::error::{Error, Result};
 use crate::frames::{NoiseModel, STD_FLOOR};
 use crate::map::{Map, VoxelKey};
 use crate::source::Scene;
-
-/// Writes 8-bit RGB pixels (row-major, 3 bytes each) as a PNG.
-pub fn write_rgb_png(path: &Path, width: u32, height: u32, rgb: &[u8]) -> Result<()> {
-    if rgb.len() != width as usize * height as usize * 3 {
-        return Err(Error::Invalid(format!("{}: pixel buffer does not match {width}x{height}", path.display())));
-    }
-    write_atomic(path, |w| {
-        let mut enc = png::Encoder::new(w, width, height);
-        enc.set_color(png::ColorType::Rgb);
-        enc.set_depth(png::BitDepth::Eight);
-        let mut writer = enc.write_header().map_err(std::io::Error::other)?;
-        writer.write_image_data(rgb).map_err(std::io::Error::other)?;
-        writer.finish().map_err(std::io::Error::other)
-    })
-}
 
 /// Colours of the accuracy image, as the MRFMap paper's Fig. 7.
 pub const ACCURATE_RGB: [u8; 3] = [250, 220, 40]; // yellow

@@ -29,8 +29,9 @@ use rayon::prelude::*;
 
 use crate::error::{Error, Result};
 use crate::inference::Engine;
-use crate::map::{BRICK_EDGE, Brick, BrickKey, Map, MapVoxel, OCCUPIED_THRESHOLD, VoxelKey, floor_i32};
-use crate::rays::{Aabb, for_each_crossing};
+use crate::map::{Aabb, box_keys};
+use crate::map::{BRICK_EDGE, Brick, BrickKey, Map, MapVoxel, OCCUPIED_THRESHOLD, VoxelKey};
+use crate::rays::for_each_crossing;
 
 /// Something voxels can be read from: a [`Map`] or a running engine ([`LiveEngine`]).
 pub trait VoxelSource: Sync {
@@ -369,14 +370,6 @@ pub fn query_segments(
         .collect()
 }
 
-/// The inclusive voxel-key range of the voxels overlapping `region` with positive volume.
-pub fn box_keys(region: &Aabb, resolution: f64) -> ([i32; 3], [i32; 3]) {
-    let lo = region.min.map(|x| floor_i32(x / resolution));
-    // The last voxel starts strictly below max: ceil(max / r) - 1.
-    let hi = region.max.map(|x| -floor_i32(-x / resolution) - 1);
-    (lo, hi)
-}
-
 /// Calls `visit(key, voxel)` for every voxel overlapping `region` with positive volume, and
 /// returns how many of them are unknown (those are counted, not visited).
 pub fn for_each_in_box(source: &impl VoxelSource, region: &Aabb, mut visit: impl FnMut(VoxelKey, MapVoxel)) -> u64 {
@@ -424,7 +417,7 @@ pub const MAX_BOX_VOXELS: u128 = 200_000_000;
 /// ```
 /// use mrfmap::map::{Map, MapVoxel, VoxelKey};
 /// use mrfmap::outputs::{QueryOptions, query_box};
-/// use mrfmap::rays::Aabb;
+/// use mrfmap::map::Aabb;
 /// let mut map = Map::new("logodds", 1.0).unwrap();
 /// map.voxels.insert(VoxelKey([0, 0, 0]), MapVoxel { occupancy: 0.2, variance: 0.0 });
 /// let region = Aabb::new([0.0; 3], [2.0, 1.0, 1.0]).unwrap(); // voxels [0,0,0] and [1,0,0]

@@ -13,8 +13,9 @@ use super::pictures::viridis;
 use super::truth::mean_sigma;
 use crate::error::{Error, Result};
 pub use crate::frames::Up;
+use crate::map::Aabb;
 use crate::map::{Grid2d, Map, MapVoxel, VoxelKey};
-use crate::rays::{Aabb, for_each_crossing};
+use crate::rays::for_each_crossing;
 
 /// What the colour of a rendered voxel says.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -86,27 +87,35 @@ pub struct View {
 }
 
 impl View {
-    /// A view of the whole map from above one corner (a third of the way up along `up`),
-    /// 1024x768, 60 degrees, occupancy above 0.5, coloured by height. `None` for an empty map.
+    /// A view of the map's occupied voxels (above 0.5; all voxels where none is) from above one
+    /// corner (a third of the way up along `up`), 1024x768, 60 degrees, occupancy above 0.5,
+    /// coloured by height. `None` for an empty map. Framing what is drawn, not every voxel:
+    /// free space reaches as far as the rays did (6 m around a 4 m scene on coffin-world),
+    /// and framed it left the scene a small picture in the middle.
     pub fn overview(map: &Map, up: Up) -> Option<View> {
-        let (lo, hi) = map.bounds()?;
+        let r = map.resolution();
+        let occupied = map.voxels.iter().filter(|(_, v)| v.occupancy > 0.5).fold(None, |b, (k, _)| {
+            let (lo, hi) = b.unwrap_or((k.0, k.0));
+            Some(([0, 1, 2].map(|a| lo[a].min(k.0[a])), [0, 1, 2].map(|a| hi[a].max(k.0[a]))))
+        });
+        let (lo, hi) = match occupied {
+            Some((lo, hi)) => (lo.map(|i| i as f64 * r), hi.map(|i| (i + 1) as f64 * r)),
+            None => map.bounds()?,
+        };
         let c = [0, 1, 2].map(|a| 0.5 * (lo[a] + hi[a]));
-        let size = (0..3).map(|a| hi[a] - lo[a]).fold(0.0, f64::max);
+        let (width, height, fov_degrees) = (1024, 768, 60.0f64);
+        // Far enough that the box's bounding sphere fits the narrower field of view (the
+        // vertical one), so the whole box shows, as large as that allows.
+        let radius = 0.5 * (0..3).map(|a| (hi[a] - lo[a]).powi(2)).sum::<f64>().sqrt();
+        let half_vertical = ((0.5 * fov_degrees).to_radians().tan() * height as f64 / width as f64).atan();
+        let distance = radius / half_vertical.sin();
         // For +z: back 0.9 along x, 1.2 along y, 0.9 up; the two level axes follow up's cyclically.
+        let norm = (0.9f64 * 0.9 + 1.2 * 1.2 + 0.9 * 0.9).sqrt();
         let mut eye = c;
-        eye[(up.axis + 1) % 3] -= 0.9 * size;
-        eye[(up.axis + 2) % 3] -= 1.2 * size;
-        eye[up.axis] += 0.9 * size * up.vector()[up.axis];
-        Some(View {
-            eye,
-            target: c,
-            width: 1024,
-            height: 768,
-            fov_degrees: 60.0,
-            threshold: 0.5,
-            colouring: Colouring::Height,
-            up,
-        })
+        eye[(up.axis + 1) % 3] -= 0.9 / norm * distance;
+        eye[(up.axis + 2) % 3] -= 1.2 / norm * distance;
+        eye[up.axis] += 0.9 / norm * distance * up.vector()[up.axis];
+        Some(View { eye, target: c, width, height, fov_degrees, threshold: 0.5, colouring: Colouring::Height, up })
     }
 }
 
@@ -339,6 +348,36 @@ mod tests {
         // Heights along up: the pole's top is the highest voxel.
         assert_eq!(up.heights([0.0, -1.0, 0.0], [1.0, 2.0, 3.0]), (-1.0, 2.0));
         assert_eq!(down.heights([0.0, -1.0, 0.0], [1.0, 2.0, 3.0]), (-2.0, 1.0));
+    }
+
+    #[test]
+    fn the_overview_frames_what_it_draws_not_the_free_space_around_it() {
+        // A 1 m cube of occupied voxels in 12 m of free space.
+        let mut map = Map::new("logodds", 0.1).unwrap();
+        for x in -60..60 {
+            for y in -60..60 {
+                map.voxels.insert(VoxelKey([x, y, 0]), MapVoxel { occupancy: 0.2, variance: 0.0 });
+            }
+        }
+        for k in 0..1000 {
+            map.voxels.insert(VoxelKey([k % 10, k / 10 % 10, 1 + k / 100]), MapVoxel { occupancy: 0.9, variance: 0.0 });
+        }
+        let near = |a: [f64; 3], b: [f64; 3]| (0..3).all(|i| (a[i] - b[i]).abs() < 1e-9);
+        let view = View::overview(&map, Up::Z).unwrap();
+        assert!(near(view.target, [0.5, 0.5, 0.6]), "{:?}", view.target);
+        let (w, h) = drawn(&render_map(&map, &view).unwrap());
+        // The cube fills a good part of the 1024 x 768 picture (it was 1/12 of the width).
+        assert!(w > 400 && h > 400, "{w}x{h}");
+        // And whole: nothing drawn on the picture's edges.
+        let picture = render_map(&map, &view).unwrap();
+        let (pw, ph) = (picture.width(), picture.height());
+        let edge = (0..pw).flat_map(|x| [(x, 30), (x, ph - 1)]).chain((30..ph).flat_map(|y| [(0, y), (pw - 1, y)]));
+        assert!(edge.into_iter().all(|(x, y)| picture.pixel(x, y) == [255, 255, 255]), "{w}x{h} touches the edge");
+        // Nothing occupied: the free voxels are framed.
+        let mut free = Map::new("logodds", 0.1).unwrap();
+        free.voxels.insert(VoxelKey([0, 0, 0]), MapVoxel { occupancy: 0.2, variance: 0.0 });
+        free.voxels.insert(VoxelKey([9, 0, 0]), MapVoxel { occupancy: 0.2, variance: 0.0 });
+        assert!(near(View::overview(&free, Up::Z).unwrap().target, [0.5, 0.05, 0.05]));
     }
 
     #[test]

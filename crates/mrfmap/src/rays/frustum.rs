@@ -30,8 +30,9 @@ use rayon::prelude::*;
 
 use std::ops::ControlFlow;
 
-use super::{Aabb, CameraRays, FrameRays, RayLimits, for_each_crossing};
+use super::{CameraRays, FrameRays, RayLimits, for_each_crossing};
 use crate::frames::{Camera, Frame};
+use crate::map::Aabb;
 use crate::map::{BRICK_EDGE, BrickKey, SlotMask, VoxelKey, floor_i32, mask_set};
 
 /// The voxels one depth image's rays cross, and the voxels holding the measured surfaces.

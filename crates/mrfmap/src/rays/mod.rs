@@ -21,6 +21,7 @@ use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
 use crate::frames::{Camera, Frame, NoiseModel, Pose, RangeScan, RayLikelihood};
+use crate::map::Aabb;
 
 /// A world-space ray through one valid depth pixel (or one beam of a range scan).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -273,77 +274,6 @@ impl<'a> Rays<'a> {
             Rays::Image(r) => ray.v as u64 * r.frame.depth.width() as u64 + ray.u as u64,
             Rays::Scan(_) => ray.u as u64,
         }
-    }
-}
-
-/// An axis-aligned box in world coordinates.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Aabb {
-    /// Lower corner.
-    pub min: [f64; 3],
-    /// Upper corner.
-    pub max: [f64; 3],
-}
-
-impl Aabb {
-    /// A box; fails unless `min < max` on every axis and all values are finite.
-    pub fn new(min: [f64; 3], max: [f64; 3]) -> crate::Result<Self> {
-        if min.iter().chain(max.iter()).any(|v| !v.is_finite()) {
-            return Err(crate::Error::Invalid(format!(
-                "bounds need finite numbers (a box is a finite region), got {min:?} and {max:?}"
-            )));
-        }
-        if (0..3).any(|a| min[a] >= max[a]) {
-            return Err(crate::Error::Invalid(format!("bounds need min < max on every axis, got {min:?} and {max:?}")));
-        }
-        Ok(Aabb { min, max })
-    }
-
-    /// Parses `XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX`.
-    ///
-    /// ```
-    /// let b = mrfmap::rays::Aabb::parse("-2,-2,0,2,2,3").unwrap();
-    /// assert_eq!(b.max, [2.0, 2.0, 3.0]);
-    /// assert!(mrfmap::rays::Aabb::parse("1,2,3").is_err());
-    /// let e = mrfmap::rays::Aabb::parse("-inf,0,0,1,1,1").unwrap_err();
-    /// assert!(e.to_string().contains("finite"));
-    /// ```
-    pub fn parse(text: &str) -> crate::Result<Self> {
-        let v: Vec<f64> = text
-            .split(',')
-            .map(|s| s.trim().parse::<f64>())
-            .collect::<Result<_, _>>()
-            .map_err(|e| crate::Error::Invalid(format!("bounds {text:?}: {e}")))?;
-        if v.len() != 6 {
-            return Err(crate::Error::Invalid(format!(
-                "bounds {text:?}: need 6 numbers XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX"
-            )));
-        }
-        Aabb::new([v[0], v[1], v[2]], [v[3], v[4], v[5]])
-    }
-
-    /// Is `p` inside (boundary included)?
-    pub fn contains(&self, p: [f64; 3]) -> bool {
-        (0..3).all(|a| p[a] >= self.min[a] && p[a] <= self.max[a])
-    }
-
-    /// The part `[a, b]` of `[s0, s1]` where `origin + s dir` is inside the box (slab method).
-    pub fn clip(&self, origin: [f64; 3], dir: [f64; 3], s0: f64, s1: f64) -> Option<(f64, f64)> {
-        let (mut a, mut b) = (s0, s1);
-        for k in 0..3 {
-            if dir[k] == 0.0 {
-                if origin[k] < self.min[k] || origin[k] > self.max[k] {
-                    return None;
-                }
-                continue;
-            }
-            let t0 = (self.min[k] - origin[k]) / dir[k];
-            let t1 = (self.max[k] - origin[k]) / dir[k];
-            let (lo, hi) = if t0 < t1 { (t0, t1) } else { (t1, t0) };
-            a = a.max(lo);
-            b = b.min(hi);
-        }
-        (a < b).then_some((a, b))
     }
 }
 

@@ -136,10 +136,19 @@ impl CarmenLog {
             return Err(Error::Invalid(format!("laser max range must be positive, got {}", options.max_range)));
         }
         let mut file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
-        let mut magic = [0u8; 2];
+        let mut magic = [0u8; 16];
         let n = file.read(&mut magic).map_err(|e| Error::io(path, e))?;
+        if let Some(what) = known_file(&magic[..n]) {
+            return Err(Error::file(
+                path,
+                format!(
+                    "{what}, not a laser log: build reads a dataset folder (depth/ of PNGs with camera.toml \
+                     and groundtruth.txt), a CARMEN laser log or a ROS bag"
+                ),
+            ));
+        }
         let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
-        let reader: Box<dyn BufRead> = if n == 2 && magic == [0x1f, 0x8b] {
+        let reader: Box<dyn BufRead> = if n >= 2 && magic[..2] == [0x1f, 0x8b] {
             Box::new(BufReader::new(flate2::read::MultiGzDecoder::new(file)))
         } else {
             Box::new(BufReader::new(file))
@@ -150,6 +159,23 @@ impl CarmenLog {
         }
         Ok(CarmenLog { path: path.to_path_buf(), readings })
     }
+}
+
+/// What a file that starts with `head` is, if it is one of the binary files users hand to
+/// `build` by mistake (maps, pictures, point clouds, bags named otherwise).
+fn known_file(head: &[u8]) -> Option<&'static str> {
+    [
+        (&b"\x89MRFMAP\n"[..], "an mrfmap map file (mrfmap info or view read it)"),
+        (b"\x89PNG", "a PNG image (a dataset's depth/ holds these)"),
+        (b"# Octomap OcTree", "an OctoMap file"),
+        (b"ply\n", "a PLY file"),
+        (b"\x89MCAP", "an MCAP file (name it .mcap to read it as a bag)"),
+        (b"#ROSBAG V2.0", "a ROS 1 bag (name it .bag to read it as one)"),
+        (b"SQLite format 3", "an SQLite file (a ROS 2 bag is read as .db3)"),
+    ]
+    .into_iter()
+    .find(|(magic, _)| head.starts_with(magic))
+    .map(|(_, what)| what)
 }
 
 /// Laser readings of a log read from `reader` (decompressed), or a message naming the line
@@ -343,6 +369,12 @@ mod tests {
         std::fs::write(&path, "ODOM 0 0 0\n").unwrap();
         let e = CarmenLog::open(&path, CarmenOptions::default()).unwrap_err().to_string();
         assert!(e.contains("not a CARMEN laser log"), "{e}");
+        // Maps and pictures handed to build by mistake are named for what they are.
+        for (bytes, what) in [(&b"\x89MRFMAP\nxxxx"[..], "mrfmap map file"), (b"\x89PNG\r\n\x1a\n", "PNG image")] {
+            std::fs::write(&path, bytes).unwrap();
+            let e = CarmenLog::open(&path, CarmenOptions::default()).unwrap_err().to_string();
+            assert!(e.contains("log.gz") && e.contains(what) && e.contains("dataset folder"), "{e}");
+        }
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

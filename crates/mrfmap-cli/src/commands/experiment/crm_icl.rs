@@ -60,7 +60,7 @@ pub fn crm_icl(a: Args) -> Result<()> {
     // not fit.
     let all: Vec<usize> = (0..clean.len()).collect();
     for config in [&logodds_config, &crm_config] {
-        check_build(config, dataset_extent(&clean, &all, config)?, all.len(), BUILD_ADVICE)?;
+        check_build(config, dataset_extent(&clean, &all, config)?, BUILD_ADVICE)?;
     }
     let (noisy, _) = noisy_copy(&clean, &a.output, &a.noise)?;
 

@@ -67,6 +67,8 @@ impl Args {
             beam_spacing: spacing.into(),
             laser_max_range: self.laser_max_range,
             misses: self.misses.clone(),
+            // The paper's reading of a miss: free up to the laser's range.
+            miss_range: f64::INFINITY,
             laser_std: self.laser_std,
         }
     }

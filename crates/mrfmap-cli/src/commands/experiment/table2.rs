@@ -120,7 +120,7 @@ pub fn mrfmap_table2(a: Args) -> Result<()> {
             let kind: EngineKind = name.parse()?;
             let mut config = EngineConfig::new(kind, resolution);
             config.crm.particles = a.particles as usize;
-            check_build(&config, dataset_extent(&data, &keyframes, &config)?, keyframes.len(), BUILD_ADVICE)?;
+            check_build(&config, dataset_extent(&data, &keyframes, &config)?, BUILD_ADVICE)?;
             let t = Instant::now();
             let map = build_map(&keyframes, &config, |i| data.frame(i))?.map;
             let build_s = t.elapsed().as_secs_f64();

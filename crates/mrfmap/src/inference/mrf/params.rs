@@ -2,6 +2,7 @@
 
 #[cfg(doc)]
 use super::MrfEngine;
+use crate::frames::{Pose, moved_beyond};
 #[cfg(doc)]
 use crate::inference::Engine;
 
@@ -32,6 +33,31 @@ pub enum KeyframeSelection {
 impl KeyframeSelection {
     /// `Auto` with the default thresholds.
     pub const AUTO: KeyframeSelection = KeyframeSelection::Auto { translation: 0.2, rotation: 0.2 };
+
+    /// Which of `poses`, integrated in order, become keyframes (their indices).
+    ///
+    /// ```
+    /// use mrfmap::frames::Pose;
+    /// use mrfmap::inference::KeyframeSelection;
+    /// let poses: Vec<Pose> = (0..10).map(|i| Pose::translation(0.1 * i as f64, 0.0, 0.0)).collect();
+    /// assert_eq!(KeyframeSelection::AUTO.keep(&poses), vec![0, 3, 6, 9]);
+    /// assert_eq!(KeyframeSelection::All.keep(&poses).len(), 10);
+    /// ```
+    pub fn keep(&self, poses: &[Pose]) -> Vec<usize> {
+        let mut kept: Vec<usize> = Vec::new();
+        for (i, pose) in poses.iter().enumerate() {
+            let new = match *self {
+                KeyframeSelection::All => true,
+                KeyframeSelection::Auto { translation, rotation } => {
+                    kept.iter().all(|&k| moved_beyond(&poses[k], pose, translation, rotation))
+                }
+            };
+            if new {
+                kept.push(i);
+            }
+        }
+        kept
+    }
 }
 
 /// Parameters of the MRF engine.

@@ -13,12 +13,12 @@ use mrfmap::inference::{
     Budget, CrmParams, Engine, EngineConfig, EngineKind, Extent, KeyframeId, MrfEngine, MrfParams, check_build,
     frames_extent, new_engine, scan_extent,
 };
+use mrfmap::map::Aabb;
 use mrfmap::map::Map;
 use mrfmap::outputs::{
     LiveEngine, OctomapFormat, PlyOptions, PointAnswer, QueryOptions, VoxelSource, check_path, query_box, query_points,
     query_polyline, query_segments, write_octomap, write_ply,
 };
-use mrfmap::map::Aabb;
 use mrfmap::rays::RayLimits;
 use mrfmap::source::bag::{Bag, BagOptions, depth_index, for_each_frame};
 use nalgebra::{Matrix3, Rotation3, Translation3, UnitQuaternion};

@@ -66,7 +66,7 @@ fn traversal(bencher: Bencher) {
 #[divan::bench(args = ["walk", "project"], sample_count = 10)]
 fn logodds_frame(bencher: Bencher, marking: &str) {
     let fs = frames(2);
-    let marking = if marking == "walk" { Marking::Walk } else { Marking::Project };
+    let marking = <Marking as mrfmap::Choice>::parse(marking).unwrap();
     bencher
         .with_inputs(|| {
             let params = LogOddsParams { marking, ..Default::default() };

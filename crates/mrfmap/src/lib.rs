@@ -34,6 +34,7 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 pub mod atomic_file;
+mod choice;
 mod error;
 pub mod frames;
 pub mod inference;
@@ -44,4 +45,5 @@ pub mod random;
 pub mod rays;
 pub mod source;
 
+pub use choice::Choice;
 pub use error::{Error, Result};

@@ -3,7 +3,7 @@
 //! live engines against queries on their finished maps.
 
 use mrfmap::frames::Frame;
-use mrfmap::inference::{EngineConfig, EngineKind, LogOddsParams, new_engine};
+use mrfmap::inference::{EngineConfig, EngineKind, LogOddsParams, merge, new_engine};
 use mrfmap::map::Aabb;
 use mrfmap::map::{Map, MapVoxel, VoxelState};
 use mrfmap::outputs::{LiveEngine, QueryOptions, query_box, query_point, query_segment};
@@ -45,7 +45,7 @@ fn build(kind: EngineKind, frames: &[Frame]) -> Map {
 fn merging_log_odds_halves_gives_the_map_of_all_frames() {
     let f = frames();
     let all = build(EngineKind::LogOdds, &f);
-    let merged = build(EngineKind::LogOdds, &f[..2]).merge(&build(EngineKind::LogOdds, &f[2..])).unwrap();
+    let merged = merge(&build(EngineKind::LogOdds, &f[..2]), &build(EngineKind::LogOdds, &f[2..])).unwrap();
     assert_eq!(merged.voxels.len(), all.voxels.len());
     for (k, v) in all.voxels.iter() {
         let m = merged.voxels.get(k).expect("same voxels");
@@ -55,7 +55,7 @@ fn merging_log_odds_halves_gives_the_map_of_all_frames() {
     assert_eq!(merged.occupied_count(), all.occupied_count());
     // Different resolutions or engines are refused.
     let crm = build(EngineKind::Crm, &f[..1]);
-    assert!(all.merge(&crm).unwrap_err().to_string().contains("one engine and resolution"));
+    assert!(merge(&all, &crm).unwrap_err().to_string().contains("one engine and resolution"));
 }
 
 #[test]
@@ -63,7 +63,7 @@ fn merging_crm_and_mrf_keeps_what_each_half_saw() {
     let f = frames();
     for kind in [EngineKind::Crm, EngineKind::Mrf] {
         let (a, b) = (build(kind, &f[..2]), build(kind, &f[2..]));
-        let merged = a.merge(&b).unwrap();
+        let merged = merge(&a, &b).unwrap();
         for (k, v) in merged.voxels.iter() {
             match (a.voxels.get(k), b.voxels.get(k)) {
                 (Some(x), None) | (None, Some(x)) => assert_eq!(v, x),

@@ -6,9 +6,11 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::Result;
-use mrfmap::inference::{CrmParams, EngineConfig, EngineKind, LogOddsParams, MrfEngine, MrfParams, new_engine};
+use mrfmap::inference::{
+    CrmParams, EngineConfig, EngineKind, LogOddsParams, Marking, MrfEngine, MrfParams, new_engine,
+};
 
-use super::build::{BagArgs, LaserOptions, Reading, marking};
+use super::build::{BagArgs, LaserOptions, Reading};
 use mrfmap::frames::Frame;
 use mrfmap::source::Dataset;
 
@@ -18,8 +20,8 @@ pub struct Args {
     /// --fixed-frame or --pose-topic).
     dataset: PathBuf,
     /// Engine to time: logodds, mrf or crm.
-    #[arg(long, default_value = "logodds", value_parser = ["logodds", "mrf", "crm"])]
-    engine: String,
+    #[arg(long, default_value = "logodds", value_parser = super::choice::<EngineKind>())]
+    engine: EngineKind,
     /// Resolutions (metres).
     #[arg(long, value_delimiter = ',', default_values_t = [0.05, 0.02, 0.01])]
     resolutions: Vec<f64>,
@@ -40,8 +42,8 @@ pub struct Args {
     #[arg(long, default_value_t = 101)]
     particles: usize,
     /// Log-odds only: find crossed voxels by projection or by walking every ray.
-    #[arg(long, default_value = "project", value_parser = ["project", "walk"])]
-    marking: String,
+    #[arg(long, default_value = "project", value_parser = super::choice::<Marking>())]
+    marking: Marking,
     #[command(flatten)]
     laser: LaserOptions,
     #[command(flatten)]
@@ -87,7 +89,7 @@ fn incremental_mrf(frames: &[Frame], resolution: f64, repeat: u32, params: MrfPa
 }
 
 pub fn run(a: Args) -> Result<()> {
-    let kind: EngineKind = a.engine.parse()?;
+    let kind = a.engine;
     if a.incremental && kind != EngineKind::Mrf {
         anyhow::bail!("--incremental is for --engine mrf");
     }
@@ -132,7 +134,11 @@ fn table<R: Reading>(
     println!(
         "# {count} {what} of {}, engine {kind}{}, {} threads, best of {}",
         a.dataset.display(),
-        if kind == EngineKind::LogOdds { format!(" (marking: {})", a.marking) } else { String::new() },
+        if kind == EngineKind::LogOdds {
+            format!(" (marking: {})", mrfmap::Choice::name(a.marking))
+        } else {
+            String::new()
+        },
         rayon::current_num_threads(),
         a.repeat
     );
@@ -147,7 +153,7 @@ fn table<R: Reading>(
         for _ in 0..a.repeat.max(1) {
             let config = EngineConfig {
                 crm: CrmParams { particles: a.particles },
-                logodds: LogOddsParams { marking: marking(&a.marking), ..Default::default() },
+                logodds: LogOddsParams { marking: a.marking, ..Default::default() },
                 mrf: a.mrf_params(),
                 ..EngineConfig::new(kind, resolution)
             };

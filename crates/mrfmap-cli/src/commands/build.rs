@@ -42,12 +42,12 @@ pub struct MapOptions {
     #[arg(long, default_value_t = 0.1)]
     pub prior: f64,
     /// MRF: allocate bricks around depth points only (band) or along whole rays (full).
-    #[arg(long, default_value = "band", value_parser = ["band", "full"])]
-    pub allocation: String,
+    #[arg(long, default_value = "band", value_parser = super::choice::<Allocation>())]
+    pub allocation: Allocation,
     /// MRF: every frame is a keyframe (all), or only frames 0.2 m / 0.2 rad from every
     /// keyframe so far (auto).
-    #[arg(long, default_value = "all", value_parser = ["all", "auto"])]
-    pub keyframes: String,
+    #[arg(long, default_value = "all", value_parser = super::choice::<KeyframeSelection>())]
+    pub keyframes: KeyframeSelection,
     /// MRF: share of a tile's old message kept when it is replaced, in [0, 1) (0, the
     /// default, is the paper's plain update; messages whose change reverses are halved
     /// whatever this says).
@@ -80,8 +80,8 @@ pub struct MapOptions {
     pub particles: u16,
     /// Log-odds: find the voxels a depth image's rays cross by projecting boxes of voxels
     /// into the image (project, faster) or by walking every ray (walk); same map.
-    #[arg(long, default_value = "project", value_parser = ["project", "walk"])]
-    pub marking: String,
+    #[arg(long, default_value = "project", value_parser = super::choice::<Marking>())]
+    pub marking: Marking,
     /// Log-odds: clamping thresholds as probabilities, "MIN,MAX" (default: OctoMap's
     /// 0.1192,0.971).
     #[arg(long, value_parser = parse_clamp)]
@@ -99,11 +99,6 @@ fn parse_clamp(s: &str) -> Result<(f64, f64), String> {
     Ok((lo, hi))
 }
 
-/// The log-odds marking named on the command line (`project` or `walk`).
-pub fn marking(name: &str) -> Marking {
-    if name == "walk" { Marking::Walk } else { Marking::Project }
-}
-
 impl MapOptions {
     /// Opens `dataset` with the noise override applied.
     pub fn open(&self, dataset: &std::path::Path) -> Result<Dataset> {
@@ -117,7 +112,6 @@ impl MapOptions {
     /// The engine configuration for `kind` at `resolution`.
     pub fn config(&self, kind: EngineKind, resolution: f64) -> Result<EngineConfig> {
         let bounds = self.bounds.as_deref().map(Aabb::parse).transpose()?;
-        let allocation = if self.allocation == "full" { Allocation::Full } else { Allocation::Band };
         let d = MrfParams::default();
         // --iterations caps --tolerance's sweeps, or alone is the number of full sweeps.
         let (iterations, tolerance) = match (self.iterations, self.tolerance) {
@@ -131,13 +125,13 @@ impl MapOptions {
             logodds: {
                 let d = LogOddsParams::default();
                 let (clamp_min, clamp_max) = self.clamp.unwrap_or((d.clamp_min, d.clamp_max));
-                LogOddsParams { marking: marking(&self.marking), clamp_min, clamp_max, ..d }
+                LogOddsParams { marking: self.marking, clamp_min, clamp_max, ..d }
             },
             mrf: MrfParams {
                 prior: self.prior,
                 iterations,
-                allocation,
-                keyframes: if self.keyframes == "auto" { KeyframeSelection::AUTO } else { KeyframeSelection::All },
+                allocation: self.allocation,
+                keyframes: self.keyframes,
                 damping: self.damping,
                 ray_spacing: self.ray_spacing,
                 tolerance,
@@ -160,14 +154,14 @@ pub struct LaserOptions {
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..))]
     pub scans_every: u32,
     /// Laser logs: FLASER/RLASER beams are pi/n apart (n) or pi/(n-1) apart (n-1).
-    #[arg(long, default_value = "n", value_parser = ["n", "n-1"])]
-    pub beam_spacing: String,
+    #[arg(long, default_value = "n", value_parser = super::choice::<BeamSpacing>())]
+    pub beam_spacing: BeamSpacing,
     /// Laser logs: FLASER/RLASER ranges at or beyond this are misses (no return).
     #[arg(long, default_value_t = 80.0, value_parser = super::positive)]
     pub laser_max_range: f64,
     /// Laser logs: misses clear space up to --miss-range (free) or are dropped (ignore).
-    #[arg(long, default_value = "free", value_parser = ["free", "ignore"])]
-    pub misses: String,
+    #[arg(long, default_value = "free", value_parser = super::choice::<Misses>())]
+    pub misses: Misses,
     /// Laser logs: how far a miss clears space (metres; `inf`: up to --laser-max-range, as
     /// OctoMap reads a max-range beam). Default 5, Cartographer's `missing_data_ray_length`:
     /// a miss is as often glass, a dark or grazing wall as open space, and 80 m of free space
@@ -182,9 +176,7 @@ pub struct LaserOptions {
 impl LaserOptions {
     /// Reads the log at `path`.
     pub fn open(&self, path: &std::path::Path) -> Result<CarmenLog> {
-        let spacing =
-            if self.beam_spacing == "n-1" { BeamSpacing::FieldOverNMinusOne } else { BeamSpacing::FieldOverN };
-        Ok(CarmenLog::open(path, CarmenOptions { spacing, max_range: self.laser_max_range })?)
+        Ok(CarmenLog::open(path, CarmenOptions { spacing: self.beam_spacing, max_range: self.laser_max_range })?)
     }
 
     /// The scans of `log` this asks for, planar at the middle of the map's layer 0 (`z = r / 2`),
@@ -203,14 +195,13 @@ impl LaserOptions {
             None => NoiseModel::aggregate(Poly([0.0; 3]), Poly([self.laser_std, 0.0, 0.0])),
         };
         let noise = Some(Arc::new(noise));
-        let misses = if self.misses == "ignore" { Misses::Ignore } else { Misses::Free };
         log.readings
             .iter()
             .step_by(self.scans_every as usize)
             .enumerate()
             .map(|(i, r)| {
                 let mut scan = r
-                    .to_scan(i, 0.5 * resolution, self.beams_every as usize, misses, noise.clone())
+                    .to_scan(i, 0.5 * resolution, self.beams_every as usize, self.misses, noise.clone())
                     .with_context(|| format!("{} line {}", log.path.display(), r.line))?;
                 scan.max_range = scan.max_range.min(self.miss_range);
                 Ok(scan)
@@ -405,8 +396,8 @@ pub struct Args {
     #[arg(short, long)]
     output: PathBuf,
     /// Inference engine: logodds, mrf or crm.
-    #[arg(long, default_value = "logodds", value_parser = ["logodds", "mrf", "crm"])]
-    engine: String,
+    #[arg(long, default_value = "logodds", value_parser = super::choice::<EngineKind>())]
+    engine: EngineKind,
     /// Voxel edge in metres.
     #[arg(long, value_parser = super::positive, allow_hyphen_values = true)]
     resolution: f64,
@@ -768,7 +759,7 @@ pub fn build_online(
 }
 
 pub fn run(a: Args) -> Result<()> {
-    let kind: EngineKind = a.engine.parse()?;
+    let kind = a.engine;
     check_output_folder(&a.output)?;
     // A map named like another format would be a .mrfmap file under a misleading name.
     let extension = a.output.extension().map(|e| e.to_string_lossy().to_lowercase());

@@ -22,8 +22,8 @@ pub struct Args {
     #[command(flatten)]
     bag: super::build::BagArgs,
     /// Engines to compare.
-    #[arg(long, value_delimiter = ',', default_value = "logodds")]
-    engines: Vec<String>,
+    #[arg(long, value_delimiter = ',', default_value = "logodds", value_parser = super::choice::<EngineKind>())]
+    engines: Vec<EngineKind>,
     /// Resolutions (m).
     #[arg(long, value_delimiter = ',', default_values_t = [0.05, 0.02])]
     resolutions: Vec<f64>,
@@ -93,7 +93,7 @@ fn extra_flags(a: &Args) -> String {
 }
 
 pub fn run(a: Args) -> Result<()> {
-    let kinds: Vec<EngineKind> = a.engines.iter().map(|e| e.parse()).collect::<mrfmap::Result<_>>()?;
+    let kinds = a.engines.clone();
     let dataset = Views::open(&a.dataset, a.options.noise.as_deref(), &a.bag)?;
     let views = if a.views.is_empty() { (0..dataset.len()).collect() } else { a.views.clone() };
     check_indices(dataset.len(), &views)?;
@@ -213,7 +213,7 @@ pub fn run(a: Args) -> Result<()> {
         },
         pu = pixel.0,
         pv = pixel.1,
-        engines = a.engines.join(","),
+        engines = a.engines.iter().map(|k| k.name()).collect::<Vec<_>>().join(","),
         res = a.resolutions.iter().map(|r| r.to_string()).collect::<Vec<_>>().join(","),
         out = a.output.display(),
         extra = extra_flags(&a),

@@ -18,8 +18,8 @@ pub struct Args {
     /// Dataset folder, or a ROS bag (with --depth-topic and --fixed-frame or --pose-topic).
     dataset: PathBuf,
     /// Inference engine: logodds, mrf or crm.
-    #[arg(long, default_value = "logodds", value_parser = ["logodds", "mrf", "crm"])]
-    engine: String,
+    #[arg(long, default_value = "logodds", value_parser = super::choice::<EngineKind>())]
+    engine: EngineKind,
     /// Voxel edge in metres.
     #[arg(long, value_parser = super::positive, allow_hyphen_values = true)]
     resolution: f64,
@@ -88,7 +88,7 @@ pub fn leave_one_out(
 }
 
 pub fn run(a: Args) -> Result<()> {
-    let kind: EngineKind = a.engine.parse()?;
+    let kind = a.engine;
     let dataset = Views::open(&a.dataset, a.options.noise.as_deref(), &a.bag)?;
     let views = if a.views.is_empty() { (0..dataset.len()).collect() } else { a.views.clone() };
     check_indices(dataset.len(), &views)?;

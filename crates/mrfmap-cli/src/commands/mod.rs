@@ -22,6 +22,9 @@ pub mod simulate;
 pub mod view;
 pub mod views;
 
+use clap::builder::TypedValueParser;
+use mrfmap::Choice;
+
 /// clap parser for a strictly positive, finite number (resolution, max range).
 pub fn positive(s: &str) -> Result<f64, String> {
     match s.parse::<f64>() {
@@ -29,6 +32,12 @@ pub fn positive(s: &str) -> Result<f64, String> {
         Ok(v) => Err(format!("must be a positive number, got {v}")),
         Err(e) => Err(e.to_string()),
     }
+}
+
+/// clap parser for an option with a fixed set of names ([`Choice`]): its names are the
+/// possible values (listed in `--help` and in errors, completed by shells).
+pub fn choice<T: Choice + Send + Sync>() -> impl clap::builder::TypedValueParser<Value = T> {
+    clap::builder::PossibleValuesParser::new(T::ALL.iter().map(|v| v.name())).try_map(|s| T::parse(&s))
 }
 
 /// clap parser for a positive number or `inf`.

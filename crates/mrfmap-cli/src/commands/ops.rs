@@ -61,7 +61,8 @@ pub struct MergeArgs {
 /// `mrfmap merge`: both maps' evidence in one.
 pub fn merge(a: MergeArgs) -> Result<()> {
     let (first, second) = (Map::load(&a.a)?, Map::load(&a.b)?);
-    let out = first.merge(&second).with_context(|| format!("merging {} and {}", a.a.display(), a.b.display()))?;
+    let out = mrfmap::inference::merge(&first, &second)
+        .with_context(|| format!("merging {} and {}", a.a.display(), a.b.display()))?;
     out.save(&a.output)?;
     println!("{}: {} voxels, {} occupied", a.output.display(), out.voxels.len(), out.occupied_count());
     Ok(())

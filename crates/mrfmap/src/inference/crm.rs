@@ -225,6 +225,28 @@ impl FrameUpdates {
     }
 }
 
+/// Beta `(alpha, beta)` with a voxel's mean and variance (moment matching); a variance at or
+/// above the Bernoulli bound `m (1 - m)` is clipped just below it.
+fn beta_of(v: MapVoxel) -> (f64, f64) {
+    let m = (v.occupancy as f64).clamp(1e-6, 1.0 - 1e-6);
+    let var = (v.variance as f64).clamp(1e-12, m * (1.0 - m) * 0.999);
+    let n = m * (1.0 - m) / var - 1.0;
+    (m * n, (1.0 - m) * n)
+}
+
+/// Merging CRM maps ([`super::merge`]): each voxel moment-matched to a Beta, the two
+/// multiplied over the uniform prior.
+pub(super) fn merge_rule() -> super::merge::MergeRule {
+    Box::new(|a, b| {
+        let (aa, ba) = beta_of(a);
+        let (ab, bb) = beta_of(b);
+        // Parameters below a small floor would be a pdf CRM's particles cannot hold.
+        let (al, be) = ((aa + ab - 1.0).max(0.05), (ba + bb - 1.0).max(0.05));
+        let n = al + be;
+        MapVoxel { occupancy: (al / n) as f32, variance: (al * be / (n * n * (n + 1.0))) as f32 }
+    })
+}
+
 /// Confidence-rich mapping.
 ///
 /// ```

@@ -17,6 +17,7 @@ use std::ops::ControlFlow;
 use rayon::prelude::*;
 use rustc_hash::FxHashMap;
 
+use super::merge::recorded;
 use super::{Engine, logit, sigmoid};
 use crate::error::{Error, Result};
 use crate::frames::{Frame, RangeScan};
@@ -127,6 +128,28 @@ pub enum Marking {
     /// [`crossed_voxels`]: crate::rays::Projector::crossed_voxels
     #[default]
     Project,
+}
+
+impl crate::Choice for Marking {
+    const WHAT: &'static str = "marking";
+    const ALL: &'static [Self] = &[Marking::Project, Marking::Walk];
+
+    fn name(self) -> &'static str {
+        match self {
+            Marking::Project => "project",
+            Marking::Walk => "walk",
+        }
+    }
+}
+
+/// Merging log-odds maps ([`super::merge`]): the sum of the log-odds, clamped to the map's
+/// clamping bounds.
+pub(super) fn merge_rule(map: &Map) -> Result<super::merge::MergeRule> {
+    let (lo, hi) = (logit(recorded(map, "clamp_min")?), logit(recorded(map, "clamp_max")?));
+    Ok(Box::new(move |a, b| MapVoxel {
+        occupancy: sigmoid((logit(a.occupancy as f64) + logit(b.occupancy as f64)).clamp(lo, hi)) as f32,
+        variance: 0.0,
+    }))
 }
 
 /// Log-odds occupancy mapping.

@@ -17,6 +17,7 @@
 mod crm;
 mod estimate;
 mod logodds;
+mod merge;
 mod mrf;
 mod vecmath;
 
@@ -26,12 +27,14 @@ use std::str::FromStr;
 pub use crm::{CrmEngine, CrmParams, crm_ray_factors};
 pub use estimate::{BASE_MEMORY, Extent, check_build, estimate_memory, frames_extent, scan_extent};
 pub use logodds::{LogOddsEngine, LogOddsParams, Marking, SensorModel};
+pub use merge::merge;
 pub use mrf::{
     Allocation, Budget, DEFAULT_MAX_SWEEPS, DEFAULT_MIN_EVIDENCE, DEFAULT_SWEEPS, DEFAULT_TOLERANCE, KeyframeId,
     KeyframeSelection, MAX_BATCH, MAX_LOG_ODDS, MU_EPS, MrfEngine, MrfParams, RunReport, StepReport, TILE,
     ray_log_messages, ray_messages,
 };
 
+use crate::Choice;
 use crate::error::{Error, Result};
 use crate::frames::{Frame, RangeScan};
 use crate::map::{Map, MapVoxel, VoxelKey};
@@ -118,14 +121,20 @@ impl fmt::Display for EngineKind {
     }
 }
 
+impl Choice for EngineKind {
+    const WHAT: &'static str = "engine";
+    const ALL: &'static [Self] = EngineKind::ALL;
+
+    fn name(self) -> &'static str {
+        EngineKind::name(self)
+    }
+}
+
 impl FromStr for EngineKind {
     type Err = Error;
 
     fn from_str(s: &str) -> Result<Self> {
-        EngineKind::ALL.iter().copied().find(|k| k.name() == s).ok_or_else(|| {
-            let names: Vec<_> = EngineKind::ALL.iter().map(|k| k.name()).collect();
-            Error::Invalid(format!("unknown engine {s:?}; available: {}", names.join(", ")))
-        })
+        <Self as Choice>::parse(s)
     }
 }
 

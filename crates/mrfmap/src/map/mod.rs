@@ -3,7 +3,8 @@
 //!
 //! Engines keep whatever per-voxel state they need in their own `Grid`; when asked they
 //! produce a `Map` of occupancy probabilities (and variances where the engine has them).
-//! Maps can be cropped, cleared, merged, compared and projected to 2D (`ops`).
+//! Maps can be cropped, cleared, compared and projected to 2D (`ops`); merging needs the
+//! engine's rule and lives with the engines ([`crate::inference::merge`]).
 
 mod file;
 mod grid;

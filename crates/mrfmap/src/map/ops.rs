@@ -1,21 +1,9 @@
-//! Operations on finished maps: crop and clear a box, merge two maps, what changed between
-//! two maps, and the 2D occupancy grid between two heights.
+//! Operations on finished maps: crop and clear a box, what changed between two maps, and the
+//! 2D occupancy grid between two heights. (Merging two maps combines their engine's evidence,
+//! so it lives with the engines: [`crate::inference::merge`].)
 //!
 //! A box selects the voxels that overlap it with positive volume (the same rule as
-//! [`crate::outputs::query_box`]). Merging combines evidence per engine:
-//!
-//! - **log-odds**: the exact sum of the two log-odds, clamped to the maps' clamping bounds,
-//!   which is the map of all frames of both wherever neither half hit a clamp;
-//! - **MRF**: the two marginals as independent evidence about the same prior,
-//!   `logit p = logit p_a + logit p_b - logit prior`. Exact when the two maps saw disjoint
-//!   parts of the world; where both saw a voxel it ignores the coupling that joint inference
-//!   would find (rebuild from both keyframe sets for that);
-//! - **CRM**: each voxel's distribution moment-matched to a Beta, and the two multiplied over
-//!   the engine's uniform prior: `Beta(a_a + a_b - 1, b_a + b_b - 1)`. Exact for Beta
-//!   posteriors of independent data; CRM's particle pdfs are close to Beta where the data are
-//!   plentiful.
-//!
-//! A voxel only one map knows is copied from it.
+//! [`crate::outputs::query_box`]).
 
 use super::{Aabb, box_keys};
 use super::{Grid, Map, MapVoxel, VoxelKey};
@@ -99,63 +87,6 @@ impl Map {
             has_variance: self.has_variance,
             voxels: Grid::new(self.resolution()).expect("valid resolution"),
         }
-    }
-
-    /// Both maps' evidence in one map (see the module documentation for what that means per
-    /// engine). The maps must share engine and resolution.
-    pub fn merge(&self, other: &Map) -> Result<Map> {
-        if self.engine != other.engine || self.resolution() != other.resolution() {
-            return Err(Error::Invalid(format!(
-                "can only merge maps of one engine and resolution: {} at {} m and {} at {} m",
-                self.engine,
-                self.resolution(),
-                other.engine,
-                other.resolution()
-            )));
-        }
-        let combine = self.combiner()?;
-        let mut out = self.clone();
-        for (key, b) in other.voxels.iter() {
-            let v = match self.voxels.get(key) {
-                Some(a) => combine(*a, *b),
-                None => *b,
-            };
-            out.voxels.insert(key, v);
-        }
-        out.params.insert("merged".into(), "true".into());
-        Ok(out)
-    }
-
-    /// How two voxels of this map's engine combine.
-    fn combiner(&self) -> Result<Box<dyn Fn(MapVoxel, MapVoxel) -> MapVoxel>> {
-        let param = |name: &str| -> Result<f64> {
-            let text = self.params.get(name).ok_or_else(|| {
-                Error::Invalid(format!("the {} map does not record its {name}, which merging needs", self.engine))
-            })?;
-            text.parse().map_err(|_| Error::Invalid(format!("the map's {name} {text:?} is not a number")))
-        };
-        let logit = |p: f64| (p / (1.0 - p)).ln();
-        let sigmoid = |l: f64| 1.0 / (1.0 + (-l).exp());
-        let bernoulli = move |l: f64| MapVoxel { occupancy: sigmoid(l) as f32, variance: 0.0 };
-        Ok(match self.engine.as_str() {
-            "logodds" => {
-                let (lo, hi) = (logit(param("clamp_min")?), logit(param("clamp_max")?));
-                Box::new(move |a, b| bernoulli((logit(a.occupancy as f64) + logit(b.occupancy as f64)).clamp(lo, hi)))
-            }
-            "mrf" => {
-                let prior = logit(param("prior")?);
-                Box::new(move |a, b| bernoulli(logit(a.occupancy as f64) + logit(b.occupancy as f64) - prior))
-            }
-            "crm" => Box::new(|a, b| {
-                let (aa, ba) = beta_of(a);
-                let (ab, bb) = beta_of(b);
-                // Parameters below a small floor would be a pdf CRM's particles cannot hold.
-                let (al, be) = ((aa + ab - 1.0).max(0.05), (ba + bb - 1.0).max(0.05));
-                let n = al + be;
-                MapVoxel { occupancy: (al / n) as f32, variance: (al * be / (n * n * (n + 1.0))) as f32 }
-            }),
-            other => return Err(Error::Invalid(format!("merging {other} maps is not defined"))),
-        })
     }
 
     /// Voxels whose state (unknown, free, occupied at `threshold`) differs from `after`'s,
@@ -247,13 +178,4 @@ impl Grid2d {
     pub fn cell(&self, i: usize, j: usize) -> Option<(f32, f32)> {
         self.cells[j * self.width + i]
     }
-}
-
-/// Beta `(alpha, beta)` with a voxel's mean and variance (moment matching); a variance at or
-/// above the Bernoulli bound `m (1 - m)` is clipped just below it.
-fn beta_of(v: MapVoxel) -> (f64, f64) {
-    let m = (v.occupancy as f64).clamp(1e-6, 1.0 - 1e-6);
-    let var = (v.variance as f64).clamp(1e-12, m * (1.0 - m) * 0.999);
-    let n = m * (1.0 - m) / var - 1.0;
-    (m * n, (1.0 - m) * n)
 }

@@ -33,6 +33,7 @@ use std::ops::ControlFlow;
 use rayon::prelude::*;
 
 use crate::frames::{Camera, DepthImage, NoiseModel, Pose};
+use crate::inference::EngineKind;
 use crate::map::Aabb;
 use crate::map::{BRICK_EDGE, BRICK_VOXELS, BrickKey, Map, MapVoxel, OCCUPIED_THRESHOLD};
 use crate::rays::{for_each_crossing, pixel_direction, pose_parts};
@@ -98,7 +99,7 @@ impl AccuracyParams {
         AccuracyParams {
             sigma: 0.05,
             k: 1.0,
-            empty_at_or_below: (map.engine == "logodds").then_some(OCCUPIED_THRESHOLD),
+            empty_at_or_below: (map.engine == EngineKind::LogOdds.name()).then_some(OCCUPIED_THRESHOLD),
             beyond_map_is_accurate: false,
             peak: PeakRule::Entry,
         }

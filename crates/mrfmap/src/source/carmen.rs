@@ -51,6 +51,30 @@ pub enum Misses {
     Ignore,
 }
 
+impl crate::Choice for BeamSpacing {
+    const WHAT: &'static str = "beam spacing";
+    const ALL: &'static [Self] = &[BeamSpacing::FieldOverN, BeamSpacing::FieldOverNMinusOne];
+
+    fn name(self) -> &'static str {
+        match self {
+            BeamSpacing::FieldOverN => "n",
+            BeamSpacing::FieldOverNMinusOne => "n-1",
+        }
+    }
+}
+
+impl crate::Choice for Misses {
+    const WHAT: &'static str = "misses";
+    const ALL: &'static [Self] = &[Misses::Free, Misses::Ignore];
+
+    fn name(self) -> &'static str {
+        match self {
+            Misses::Free => "free",
+            Misses::Ignore => "ignore",
+        }
+    }
+}
+
 /// How a log is read.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct CarmenOptions {

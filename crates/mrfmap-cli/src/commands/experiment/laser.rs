@@ -15,11 +15,13 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, Result};
+use mrfmap::Choice;
 use mrfmap::frames::RangeScan;
 use mrfmap::inference::{Engine, LogOddsEngine, LogOddsParams, SensorModel};
 use mrfmap::map::Map;
 use mrfmap::outputs::pictures::write_text;
 use mrfmap::outputs::render_grid2d;
+use mrfmap::source::{BeamSpacing, Misses};
 
 use super::{Method, Scores, score, sweep};
 use crate::commands::build::LaserOptions;
@@ -38,16 +40,16 @@ pub struct Args {
     #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u32).range(1..))]
     subset: u32,
     /// FLASER/RLASER beam spacing: pi/n (n) or pi/(n-1) (n-1).
-    #[arg(long, default_value = "n", value_parser = ["n", "n-1"])]
-    beam_spacing: String,
+    #[arg(long, default_value = "n", value_parser = crate::commands::choice::<BeamSpacing>())]
+    beam_spacing: BeamSpacing,
     /// Ranges at or beyond this are misses.
     #[arg(long, default_value_t = 80.0, value_parser = crate::commands::positive)]
     laser_max_range: f64,
     /// Misses clear space up to the maximum range (free) or are dropped (ignore: the default
     /// here, since lasers also miss on glass and grazing walls, and 80 m of "free" through a
     /// window clears walls in both the reference and the maps under test).
-    #[arg(long, default_value = "ignore", value_parser = ["free", "ignore"])]
-    misses: String,
+    #[arg(long, default_value = "ignore", value_parser = crate::commands::choice::<Misses>())]
+    misses: Misses,
     /// CRM's range noise std in metres.
     #[arg(long, default_value_t = 0.03, value_parser = crate::commands::positive)]
     laser_std: f64,
@@ -60,22 +62,30 @@ pub struct Args {
 }
 
 impl Args {
-    fn laser(&self, beams_every: u32, spacing: &str) -> LaserOptions {
+    fn laser(&self, beams_every: u32, spacing: BeamSpacing) -> LaserOptions {
         LaserOptions {
             beams_every,
             scans_every: 1,
-            beam_spacing: spacing.into(),
+            beam_spacing: spacing,
             laser_max_range: self.laser_max_range,
-            misses: self.misses.clone(),
+            misses: self.misses,
             // The paper's reading of a miss: free up to the laser's range.
             miss_range: f64::INFINITY,
             laser_std: self.laser_std,
         }
     }
 
-    fn scans(&self, beams_every: u32, spacing: &str) -> Result<Vec<RangeScan>> {
+    fn scans(&self, beams_every: u32, spacing: BeamSpacing) -> Result<Vec<RangeScan>> {
         let options = self.laser(beams_every, spacing);
         options.scans(&options.open(&self.log)?, self.resolution, None)
+    }
+}
+
+/// How the report writes a beam spacing.
+fn spacing_label(spacing: BeamSpacing) -> &'static str {
+    match spacing {
+        BeamSpacing::FieldOverN => "pi / n",
+        BeamSpacing::FieldOverNMinusOne => "pi / (n - 1)",
     }
 }
 
@@ -124,14 +134,14 @@ pub(super) fn crm_laser(a: Args) -> Result<()> {
          lower mean entropy of the known cells and fewer occupied cells mean a sharper map.\n\n\
          | spacing | known cells | occupied | mean entropy (bits) |\n|---|---|---|---|"
     );
-    for spacing in ["n", "n-1"] {
+    for &spacing in BeamSpacing::ALL {
         let m = reference(&a.scans(1, spacing)?, r)?;
-        let label = if spacing == "n" { "pi / n" } else { "pi / (n - 1)" };
+        let label = spacing_label(spacing);
         let _ = writeln!(report, "| {label} | {} | {} | {:.4} |", m.voxels.len(), m.occupied_count(), entropy(&m));
     }
 
-    let all = a.scans(1, &a.beam_spacing)?;
-    let subset = a.scans(a.subset, &a.beam_spacing)?;
+    let all = a.scans(1, a.beam_spacing)?;
+    let subset = a.scans(a.subset, a.beam_spacing)?;
     let beams = |s: &[RangeScan]| s.iter().map(|x| x.beams.len()).sum::<usize>();
     let t = Instant::now();
     let truth = reference(&all, r)?;
@@ -147,8 +157,8 @@ pub(super) fn crm_laser(a: Args) -> Result<()> {
         beams(&all),
         a.subset,
         beams(&subset),
-        if a.beam_spacing == "n" { "pi / n" } else { "pi / (n - 1)" },
-        a.misses,
+        spacing_label(a.beam_spacing),
+        a.misses.name(),
         a.laser_std,
         truth.voxels.len(),
         a.repeat

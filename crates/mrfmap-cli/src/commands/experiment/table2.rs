@@ -47,8 +47,8 @@ pub struct Args {
     #[arg(long, value_delimiter = ',', default_value = "0.05,0.02,0.01", value_parser = crate::commands::positive)]
     resolutions: Vec<f64>,
     /// Engines, in report order.
-    #[arg(long, value_delimiter = ',', default_value = "mrf,logodds,crm", value_parser = ["mrf", "logodds", "crm"])]
-    engines: Vec<String>,
+    #[arg(long, value_delimiter = ',', default_value = "mrf,logodds,crm", value_parser = crate::commands::choice::<EngineKind>())]
+    engines: Vec<EngineKind>,
     /// Keyframe heuristic: a new keyframe when the camera moved more than this (m) from the
     /// last one (the paper: 1.0 on the whole 2,870-frame sequence; 0.15 gives 21 keyframes on
     /// the first 211 frames).
@@ -116,8 +116,7 @@ pub fn mrfmap_table2(a: Args) -> Result<()> {
 
     let mut rows = Vec::new();
     for &resolution in &a.resolutions {
-        for name in &a.engines {
-            let kind: EngineKind = name.parse()?;
+        for &kind in &a.engines {
             let mut config = EngineConfig::new(kind, resolution);
             config.crm.particles = a.particles as usize;
             check_build(&config, dataset_extent(&data, &keyframes, &config)?, BUILD_ADVICE)?;
@@ -237,10 +236,10 @@ fn report(
             let _ = write!(r, " {res} m |");
         }
         let _ = writeln!(r, "\n|---|{}", "---|".repeat(a.resolutions.len()));
-        for name in &a.engines {
-            let _ = write!(r, "| {name} |");
+        for &kind in &a.engines {
+            let _ = write!(r, "| {kind} |");
             for &res in &a.resolutions {
-                let row = rows.iter().find(|x| x.engine.name() == name && x.resolution == res);
+                let row = rows.iter().find(|x| x.engine == kind && x.resolution == res);
                 let values = row.map(|x| if pick == 0 { &x.constant } else { &x.model });
                 match values.and_then(|v| mean_std(v)) {
                     Some((m, s)) => {

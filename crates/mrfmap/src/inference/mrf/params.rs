@@ -2,6 +2,7 @@
 
 #[cfg(doc)]
 use super::MrfEngine;
+use crate::Choice;
 use crate::frames::{Pose, moved_beyond};
 #[cfg(doc)]
 use crate::inference::Engine;
@@ -28,6 +29,31 @@ pub enum KeyframeSelection {
         /// Rotation threshold (rad).
         rotation: f64,
     },
+}
+
+impl Choice for Allocation {
+    const WHAT: &'static str = "allocation";
+    const ALL: &'static [Self] = &[Allocation::Band, Allocation::Full];
+
+    fn name(self) -> &'static str {
+        match self {
+            Allocation::Band => "band",
+            Allocation::Full => "full",
+        }
+    }
+}
+
+/// `all`, or `auto` with the default thresholds ([`KeyframeSelection::AUTO`]).
+impl Choice for KeyframeSelection {
+    const WHAT: &'static str = "keyframe selection";
+    const ALL: &'static [Self] = &[KeyframeSelection::All, KeyframeSelection::AUTO];
+
+    fn name(self) -> &'static str {
+        match self {
+            KeyframeSelection::All => "all",
+            KeyframeSelection::Auto { .. } => "auto",
+        }
+    }
 }
 
 impl KeyframeSelection {

@@ -32,3 +32,21 @@ pub trait Choice: Copy + Sized + 'static {
         })
     }
 }
+
+/// Implements [`Choice`] for a fieldless enum: `choice!(Type, "what", Variant => "name", ...)`,
+/// the variants in the order they are listed.
+macro_rules! choice {
+    ($ty:ident, $what:literal, $($variant:ident => $name:literal),+ $(,)?) => {
+        impl $crate::Choice for $ty {
+            const WHAT: &'static str = $what;
+            const ALL: &'static [Self] = &[$($ty::$variant),+];
+
+            fn name(self) -> &'static str {
+                match self {
+                    $($ty::$variant => $name),+
+                }
+            }
+        }
+    };
+}
+pub(crate) use choice;

@@ -130,17 +130,7 @@ pub enum Marking {
     Project,
 }
 
-impl crate::Choice for Marking {
-    const WHAT: &'static str = "marking";
-    const ALL: &'static [Self] = &[Marking::Project, Marking::Walk];
-
-    fn name(self) -> &'static str {
-        match self {
-            Marking::Project => "project",
-            Marking::Walk => "walk",
-        }
-    }
-}
+crate::choice::choice!(Marking, "marking", Project => "project", Walk => "walk");
 
 /// Merging log-odds maps ([`super::merge`]): the sum of the log-odds, clamped to the map's
 /// clamping bounds.

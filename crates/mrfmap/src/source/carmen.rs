@@ -51,29 +51,9 @@ pub enum Misses {
     Ignore,
 }
 
-impl crate::Choice for BeamSpacing {
-    const WHAT: &'static str = "beam spacing";
-    const ALL: &'static [Self] = &[BeamSpacing::FieldOverN, BeamSpacing::FieldOverNMinusOne];
+crate::choice::choice!(BeamSpacing, "beam spacing", FieldOverN => "n", FieldOverNMinusOne => "n-1");
 
-    fn name(self) -> &'static str {
-        match self {
-            BeamSpacing::FieldOverN => "n",
-            BeamSpacing::FieldOverNMinusOne => "n-1",
-        }
-    }
-}
-
-impl crate::Choice for Misses {
-    const WHAT: &'static str = "misses";
-    const ALL: &'static [Self] = &[Misses::Free, Misses::Ignore];
-
-    fn name(self) -> &'static str {
-        match self {
-            Misses::Free => "free",
-            Misses::Ignore => "ignore",
-        }
-    }
-}
+crate::choice::choice!(Misses, "misses", Free => "free", Ignore => "ignore");
 
 /// How a log is read.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -31,17 +31,7 @@ pub enum KeyframeSelection {
     },
 }
 
-impl Choice for Allocation {
-    const WHAT: &'static str = "allocation";
-    const ALL: &'static [Self] = &[Allocation::Band, Allocation::Full];
-
-    fn name(self) -> &'static str {
-        match self {
-            Allocation::Band => "band",
-            Allocation::Full => "full",
-        }
-    }
-}
+crate::choice::choice!(Allocation, "allocation", Band => "band", Full => "full");
 
 /// `all`, or `auto` with the default thresholds ([`KeyframeSelection::AUTO`]).
 impl Choice for KeyframeSelection {

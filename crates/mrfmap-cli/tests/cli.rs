@@ -50,12 +50,35 @@ fn stdout(o: &Output) -> String {
     String::from_utf8_lossy(&o.stdout).into_owned()
 }
 
-/// A fresh folder per test.
-fn workdir(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("mrfmap-cli-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
+/// A fresh folder per test, removed when the test ends (kept, and its path printed, when
+/// `MRFMAP_KEEP_TEST_DIRS` is set, to look at what a failing test wrote).
+struct Workdir(tempfile::TempDir);
+
+impl std::ops::Deref for Workdir {
+    type Target = Path;
+
+    fn deref(&self) -> &Path {
+        self.0.path()
+    }
+}
+
+impl AsRef<Path> for Workdir {
+    fn as_ref(&self) -> &Path {
+        self.0.path()
+    }
+}
+
+impl Drop for Workdir {
+    fn drop(&mut self) {
+        if std::env::var_os("MRFMAP_KEEP_TEST_DIRS").is_some() {
+            eprintln!("kept {}", self.0.path().display());
+            self.0.disable_cleanup(true);
+        }
+    }
+}
+
+fn workdir(name: &str) -> Workdir {
+    Workdir(tempfile::Builder::new().prefix(&format!("mrfmap-cli-{name}-")).tempdir().unwrap())
 }
 
 /// Writes the scene and simulates it into `dir/data`.

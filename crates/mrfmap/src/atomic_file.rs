@@ -12,13 +12,12 @@ use crate::error::{Error, Result};
 /// Writes `path` through `fill`; the file appears (by rename) only if `fill` succeeds.
 ///
 /// ```
-/// # let dir = std::env::temp_dir().join(format!("mrfmap-doc-atomic-{}", std::process::id()));
-/// # std::fs::create_dir_all(&dir).unwrap();
+/// # let tmp = tempfile::tempdir().unwrap();
+/// # let dir = tmp.path();
 /// use std::io::Write;
 /// let path = dir.join("hello.txt");
 /// mrfmap::atomic_file::write_atomic(&path, |w| w.write_all(b"hello")).unwrap();
 /// assert_eq!(std::fs::read(&path).unwrap(), b"hello");
-/// # std::fs::remove_dir_all(&dir).unwrap();
 /// ```
 pub fn write_atomic(path: &Path, fill: impl FnOnce(&mut BufWriter<File>) -> std::io::Result<()>) -> Result<()> {
     let (mut writer, pending) = create_atomic(path)?;
@@ -78,8 +77,8 @@ mod tests {
 
     #[test]
     fn failed_fill_leaves_no_file() {
-        let dir = std::env::temp_dir().join(format!("mrfmap-atomic-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path();
         let path = dir.join("out.bin");
         let err = write_atomic(&path, |w| {
             w.write_all(b"partial")?;
@@ -88,7 +87,6 @@ mod tests {
         .unwrap_err();
         assert!(err.to_string().contains("out.bin"), "{err}");
         assert!(!path.exists());
-        assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 0, "temporary file left behind");
-        std::fs::remove_dir_all(&dir).unwrap();
+        assert_eq!(std::fs::read_dir(dir).unwrap().count(), 0, "temporary file left behind");
     }
 }

@@ -262,8 +262,8 @@ mod tests {
             map_of(&[([0, 0, 0], 0.9), ([9, 0, 0], 0.8)]),
             map_of(&[([0, 0, 0], 0.3), ([9, 0, 0], 0.8), ([9, 1, 0], 0.7)]),
         ];
-        let dir = std::env::temp_dir().join(format!("mrfmap-timeline-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path();
         let path = dir.join("t.mcap");
         let mut timeline = SceneTimeline::create(&path, &steps[0], SceneOptions::default()).unwrap();
         for (k, map) in steps.iter().enumerate() {
@@ -290,8 +290,7 @@ mod tests {
         // Dropped before it is finished, a timeline leaves nothing behind.
         let other = dir.join("u.mcap");
         drop(SceneTimeline::create(&other, &steps[0], SceneOptions::default()).unwrap());
-        assert_eq!(std::fs::read_dir(&dir).unwrap().count(), 1);
-        std::fs::remove_dir_all(&dir).unwrap();
+        assert_eq!(std::fs::read_dir(dir).unwrap().count(), 1);
     }
 
     #[test]
@@ -300,8 +299,8 @@ mod tests {
         for (k, p) in [([0, 0, 0], 0.9), ([1, 0, 0], 0.2), ([9, 0, 0], 0.7), ([-1, -1, 3], 0.99)] {
             map.voxels.insert(VoxelKey(k), MapVoxel { occupancy: p, variance: 0.0 });
         }
-        let dir = std::env::temp_dir().join(format!("mrfmap-foxglove-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path();
         let path = dir.join("m.mcap");
         let summary = write_scene_mcap(&map, &path, &SceneOptions::default()).unwrap();
         assert_eq!(summary, SceneSummary { entities: 3, cubes: 3 });
@@ -323,6 +322,5 @@ mod tests {
         let colour = cube["color"]["g"].as_f64().unwrap();
         assert!((0.0..=1.0).contains(&colour));
         assert_eq!(entities[1]["frame_id"], "map");
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

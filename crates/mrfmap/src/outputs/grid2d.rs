@@ -15,6 +15,8 @@
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
+use yaml_rust2::{Yaml, YamlLoader};
+
 use crate::atomic_file::write_atomic;
 use crate::error::{Error, Result};
 use crate::map::Grid2d;
@@ -125,25 +127,31 @@ pub struct MapServerGrid {
 pub fn read_map_server(yaml: &Path) -> Result<MapServerGrid> {
     let text = std::fs::read_to_string(yaml).map_err(|e| Error::io(yaml, e))?;
     let bad = |m: String| Error::file(yaml, m);
-    let field = |name: &str| -> Result<&str> {
-        text.lines()
-            .find_map(|l| l.strip_prefix(name).and_then(|r| r.strip_prefix(':')))
-            .map(str::trim)
-            .ok_or_else(|| bad(format!("missing `{name}`")))
+    let docs = YamlLoader::load_from_str(&text).map_err(|e| bad(format!("not YAML: {e}")))?;
+    let doc = docs.first().filter(|d| d.as_hash().is_some()).ok_or_else(|| bad("not a map_server YAML file".into()))?;
+    let field = |name: &str| -> Result<&Yaml> {
+        let v = &doc[name];
+        if v.is_badvalue() { Err(bad(format!("missing `{name}`"))) } else { Ok(v) }
     };
+    // YAML writes 1 and 1.0 as different types; map_server reads both as numbers.
+    let as_number = |v: &Yaml| v.as_f64().or_else(|| v.as_i64().map(|i| i as f64));
     let number = |name: &str| -> Result<f64> {
         let v = field(name)?;
-        v.parse().map_err(|_| bad(format!("`{name}: {v}` is not a number")))
+        as_number(v).ok_or_else(|| bad(format!("`{name}` is not a number: {v:?}")))
     };
     let origin: Vec<f64> = field("origin")?
-        .trim_matches(|c| c == '[' || c == ']')
-        .split(',')
-        .map(|s| s.trim().parse::<f64>())
-        .collect::<std::result::Result<_, _>>()
-        .map_err(|_| bad("`origin` must be [x, y, yaw]".into()))?;
+        .as_vec()
+        .and_then(|v| v.iter().map(as_number).collect())
+        .ok_or_else(|| bad("`origin` must be [x, y, yaw]".into()))?;
     let origin: [f64; 3] = origin.try_into().map_err(|_| bad("`origin` must be [x, y, yaw]".into()))?;
-    let (occ, free, negate) = (number("occupied_thresh")?, number("free_thresh")?, number("negate")? != 0.0);
-    let image = yaml.parent().unwrap_or(Path::new("")).join(field("image")?);
+    // `negate` is 0 or 1 in map_server's files; a YAML boolean means the same.
+    let negate = match field("negate")? {
+        Yaml::Boolean(b) => *b,
+        v => as_number(v).ok_or_else(|| bad(format!("`negate` is not 0, 1 or a boolean: {v:?}")))? != 0.0,
+    };
+    let (occ, free, resolution) = (number("occupied_thresh")?, number("free_thresh")?, number("resolution")?);
+    let image = field("image")?.as_str().ok_or_else(|| bad("`image` is not a file name".into()))?;
+    let image = yaml.parent().unwrap_or(Path::new("")).join(image);
     let bytes = std::fs::read(&image).map_err(|e| Error::io(&image, e))?;
     let (width, height, pixels) = parse_pgm(&bytes).map_err(|m| Error::file(&image, m))?;
     let mut cells = vec![None; width * height];
@@ -161,7 +169,7 @@ pub fn read_map_server(yaml: &Path) -> Result<MapServerGrid> {
             };
         }
     }
-    Ok(MapServerGrid { resolution: number("resolution")?, origin, width, height, cells })
+    Ok(MapServerGrid { resolution, origin, width, height, cells })
 }
 
 /// Width, height and pixels of an 8-bit binary PGM (comments allowed in the header).
@@ -211,8 +219,8 @@ mod tests {
 
     #[test]
     fn map_server_reads_what_we_write() {
-        let dir = std::env::temp_dir().join(format!("mrfmap-grid2d-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path();
         let cells = vec![Some((0.9, 0.1)), Some((0.2, 0.3)), None, Some((0.5, 0.5)), None, Some((0.51, 0.0))];
         let grid = Grid2d { resolution: 0.05, origin: [-1.0, 2.5], width: 3, height: 2, cells };
         let files = write_map_server(&grid, &dir.join("m.yaml"), 0.5, true).unwrap();
@@ -224,12 +232,24 @@ mod tests {
         let (_, _, px) = parse_pgm(&sigma).unwrap();
         // Top row is y row 1: sigma 0.5 -> 255, unknown -> 255, 0 -> 0.
         assert_eq!(px, &[255, 255, 0, 51, 153, 255]);
+        // What other tools write: quoted names, comments, integers, a boolean, other keys in
+        // another order (the line-prefix reader took `image: "m.pgm"  # x` as a file name).
+        let other = "# saved by hand\nmode: trinary\nnegate: false\norigin: [-1, 2.5, 0]  # x, y, yaw\n\
+                     image: \"m.pgm\"  # the picture\nresolution: 0.05\noccupied_thresh: 0.65\nfree_thresh: 0.196\n";
+        std::fs::write(dir.join("m.yaml"), other).unwrap();
+        let again = read_map_server(&dir.join("m.yaml")).unwrap();
+        assert_eq!((again.origin, again.cells.clone()), (back.origin, back.cells.clone()));
         // Broken files name what is wrong.
+        std::fs::write(dir.join("m.yaml"), "image: [m.pgm\n").unwrap();
+        assert!(read_map_server(&dir.join("m.yaml")).unwrap_err().to_string().contains("not YAML"));
+        let fine = other.replace("resolution: 0.05", "resolution: fine");
+        std::fs::write(dir.join("m.yaml"), fine).unwrap();
+        let e = read_map_server(&dir.join("m.yaml")).unwrap_err().to_string();
+        assert!(e.contains("m.yaml") && e.contains("`resolution` is not a number"), "{e}");
         std::fs::write(dir.join("m.yaml"), "image: m.pgm\nresolution: 0.05\n").unwrap();
         assert!(read_map_server(&dir.join("m.yaml")).unwrap_err().to_string().contains("missing `origin`"));
         assert!(parse_pgm(b"P2\n1 1\n255\n0").unwrap_err().contains("not a binary PGM"));
         assert!(parse_pgm(b"P5\n4 4\n255\n\x00").unwrap_err().contains("truncated"));
         assert!(parse_pgm(b"P5\n1 1\n65535\n\x00\x00").unwrap_err().contains("8-bit"));
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -201,8 +201,8 @@ fn write_node(slice: &[Entry], depth: u32, format: OctomapFormat, emit: &mut dyn
 /// ```
 /// use mrfmap::map::{Map, MapVoxel, VoxelKey};
 /// use mrfmap::outputs::{OctomapFormat, read_octomap, write_octomap};
-/// # let dir = std::env::temp_dir().join(format!("mrfmap-doc-bt-{}", std::process::id()));
-/// # std::fs::create_dir_all(&dir).unwrap();
+/// # let tmp = tempfile::tempdir().unwrap();
+/// # let dir = tmp.path();
 /// let mut map = Map::new("logodds", 0.1).unwrap();
 /// map.voxels.insert(VoxelKey([0, 0, 0]), MapVoxel { occupancy: 0.9, variance: 0.0 });
 /// map.voxels.insert(VoxelKey([-1, 2, 3]), MapVoxel { occupancy: 0.2, variance: 0.0 });
@@ -211,7 +211,6 @@ fn write_node(slice: &[Entry], depth: u32, format: OctomapFormat, emit: &mut dyn
 /// let tree = read_octomap(&path).unwrap();
 /// assert_eq!((tree.nodes, tree.leaves.len() as u64), (summary.nodes, 2));
 /// assert_eq!(tree.leaves.iter().filter(|l| l.value > 0.0).count(), 1);
-/// # std::fs::remove_dir_all(&dir).unwrap();
 /// ```
 pub fn write_octomap(map: &Map, path: &Path, format: OctomapFormat) -> Result<OctomapSummary> {
     if map.voxels.is_empty() {
@@ -393,16 +392,11 @@ mod tests {
         map
     }
 
-    fn dir() -> std::path::PathBuf {
-        let d = std::env::temp_dir().join(format!("mrfmap-octomap-{}", std::process::id()));
-        std::fs::create_dir_all(&d).unwrap();
-        d
-    }
-
     #[test]
     fn round_trips_voxel_for_voxel() {
         let map = random_map(4);
-        let d = dir();
+        let tmp = tempfile::tempdir().unwrap();
+        let d = tmp.path();
         for format in [OctomapFormat::Binary, OctomapFormat::Full] {
             let path = d.join(if format == OctomapFormat::Binary { "t.bt" } else { "t.ot" });
             let s = write_octomap(&map, &path, format).unwrap();
@@ -426,13 +420,12 @@ mod tests {
                 assert!(tree.leaves.iter().any(|l| l.depth == 15 && l.value > 0.0), "the occupied 2x2x2 block too");
             }
         }
-        std::fs::remove_dir_all(&d).unwrap();
     }
 
     #[test]
     fn bad_maps_and_files_are_refused() {
-        let d = dir().join("bad");
-        std::fs::create_dir_all(&d).unwrap();
+        let tmp = tempfile::tempdir().unwrap();
+        let d = tmp.path();
         let empty = Map::new("logodds", 0.1).unwrap();
         let e = write_octomap(&empty, &d.join("e.bt"), OctomapFormat::Binary).unwrap_err().to_string();
         assert!(e.contains("empty") && !d.join("e.bt").exists(), "{e}");
@@ -447,6 +440,5 @@ mod tests {
         assert!(e.contains("x.bt") && e.contains("data ends"), "{e}");
         std::fs::write(&p, "hello\n").unwrap();
         assert!(read_octomap(&p).unwrap_err().to_string().contains("not an OctoMap file"));
-        std::fs::remove_dir_all(&d).unwrap();
     }
 }

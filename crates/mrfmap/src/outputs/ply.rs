@@ -189,8 +189,8 @@ mod tests {
         map.has_variance = true;
         map.voxels.insert(VoxelKey([-1, 0, 2]), MapVoxel { occupancy: 0.9, variance: 0.05 });
         map.voxels.insert(VoxelKey([3, 3, 3]), MapVoxel { occupancy: 0.2, variance: 0.01 });
-        let dir = std::env::temp_dir().join(format!("mrfmap-ply-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path();
         let p = dir.join("m.ply");
         assert_eq!(write_ply(&map, &p, PlyOptions { min_occupancy: None }).unwrap(), 2);
         let v = read_ply(&p).unwrap();

@@ -356,8 +356,8 @@ mod tests {
     #[test]
     fn gzip_logs_and_truncated_gzip() {
         use std::io::Write;
-        let dir = std::env::temp_dir().join(format!("mrfmap-carmen-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path();
         let mut gz = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::default());
         for _ in 0..200 {
             gz.write_all(LOG.as_bytes()).unwrap();
@@ -379,6 +379,5 @@ mod tests {
             let e = CarmenLog::open(&path, CarmenOptions::default()).unwrap_err().to_string();
             assert!(e.contains("log.gz") && e.contains(what) && e.contains("dataset folder"), "{e}");
         }
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -85,19 +85,14 @@ fn units(z: f32, depth_scale: f64) -> u16 {
 mod tests {
     use super::*;
 
-    fn tmp(name: &str) -> std::path::PathBuf {
-        let dir = std::env::temp_dir().join(format!("mrfmap-png-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        dir.join(name)
-    }
-
     #[test]
     fn round_trip_quantises_to_scale() {
         let mut img = DepthImage::new(5, 3);
         img.set(0, 0, 1.23456);
         img.set(4, 2, 6.5);
         img.set(2, 1, 20.0); // beyond 65535 / 5000 m: stored as no return
-        let p = tmp("rt.png");
+        let tmp = tempfile::tempdir().unwrap();
+        let p = tmp.path().join("rt.png");
         write_depth_png(&p, &img, 5000.0).unwrap();
         let back = read_depth_png(&p, 5000.0, Some((5, 3))).unwrap();
         assert!((back.get(0, 0).unwrap() - 1.2346).abs() < 1e-6);
@@ -109,7 +104,8 @@ mod tests {
 
     #[test]
     fn refuses_8_bit_and_garbage() {
-        let p = tmp("eight.png");
+        let tmp = tempfile::tempdir().unwrap();
+        let p = tmp.path().join("eight.png");
         let f = std::fs::File::create(&p).unwrap();
         let mut enc = png::Encoder::new(f, 2, 2);
         enc.set_color(png::ColorType::Rgb);
@@ -117,7 +113,7 @@ mod tests {
         enc.write_header().unwrap().write_image_data(&[0; 12]).unwrap();
         let e = read_depth_png(&p, 5000.0, Some((2, 2))).unwrap_err().to_string();
         assert!(e.contains("eight.png") && e.contains("16-bit"), "{e}");
-        let g = tmp("garbage.png");
+        let g = tmp.path().join("garbage.png");
         std::fs::write(&g, b"not a png at all").unwrap();
         let e = read_depth_png(&g, 5000.0, Some((2, 2))).unwrap_err().to_string();
         assert!(e.contains("garbage.png") && e.contains("unreadable PNG"), "{e}");

@@ -595,8 +595,8 @@ mod tests {
 
     #[test]
     fn compressed_mcap_chunks_and_bag_errors() {
-        let dir = std::env::temp_dir().join(format!("mrfmap-bag-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path();
         for (name, compression) in [("zstd.mcap", mcap::Compression::Zstd), ("lz4.mcap", mcap::Compression::Lz4)] {
             let path = dir.join(name);
             let file = std::io::BufWriter::new(std::fs::File::create(&path).unwrap());
@@ -653,6 +653,5 @@ mod tests {
         std::fs::write(dir.join("junk.db3"), b"not sqlite at all").unwrap();
         let bag = Bag::open(&dir.join("junk.db3")).unwrap();
         assert!(bag.topics().unwrap_err().to_string().contains("not a readable ROS 2 sqlite3 bag"));
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -294,8 +294,8 @@ mod tests {
     }
 
     fn read(bytes: &[u8], name: &str, topics: &[&str]) -> Result<Vec<Message>> {
-        let dir = std::env::temp_dir().join(format!("mrfmap-ros1-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
+        let tmp = tempfile::tempdir().unwrap();
+        let dir = tmp.path();
         let path = dir.join(name);
         std::fs::write(&path, bytes).unwrap();
         let mut got = Vec::new();
@@ -303,7 +303,6 @@ mod tests {
             got.push((t.to_string(), ty.to_string(), time, data.to_vec()));
             Ok(())
         });
-        std::fs::remove_file(&path).unwrap();
         r.map(|()| got)
     }
 

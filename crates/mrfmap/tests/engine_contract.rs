@@ -1,0 +1,91 @@
+//! What every engine promises, checked for all three on one small simulated scene: the map
+//! does not depend on the number of threads; an empty frame and NaN depths are no readings;
+//! frames that see nothing inside the bounds leave the map empty; a map survives its file.
+
+use mrfmap::frames::{DepthImage, Frame};
+use mrfmap::inference::{EngineConfig, EngineKind, new_engine};
+use mrfmap::map::{Aabb, Map};
+use mrfmap::source::Scene;
+
+/// A box on a floor seen from three sides by a small camera.
+const SCENE: &str = "[camera]\nfx = 60.0\nfy = 60.0\ncx = 39.5\ncy = 29.5\nwidth = 80\nheight = 60\n\
+    depth_scale = 5000.0\n[noise]\nbias = [0.0]\nstd = [0.01]\n\
+    [[box]]\nmin = [-3.0, -3.0, -0.2]\nmax = [3.0, 3.0, 0.0]\n\
+    [[box]]\nmin = [-0.4, -0.3, 0.0]\nmax = [0.4, 0.3, 0.7]\n\
+    [[view]]\neye = [2.0, 0.1, 1.0]\ntarget = [0.0, 0.0, 0.3]\n\
+    [[view]]\neye = [-2.0, 0.2, 1.2]\ntarget = [0.0, 0.0, 0.3]\n\
+    [[view]]\neye = [0.1, 2.0, 1.1]\ntarget = [0.0, 0.0, 0.3]\n";
+
+fn frames() -> Vec<Frame> {
+    let scene = Scene::from_toml(SCENE, "contract.toml".as_ref()).unwrap();
+    scene.views.iter().enumerate().map(|(i, pose)| scene.frame(i, pose, Some(7))).collect()
+}
+
+fn build(config: &EngineConfig, frames: &[Frame]) -> Map {
+    let mut engine = new_engine(config).unwrap();
+    for f in frames {
+        engine.integrate(f).unwrap();
+    }
+    engine.finish().unwrap();
+    engine.map()
+}
+
+/// Every voxel with its occupancy and variance, bit for bit.
+fn voxels(map: &Map) -> Vec<([i32; 3], u32, u32)> {
+    let mut v: Vec<_> = map.voxels.iter().map(|(k, v)| (k.0, v.occupancy.to_bits(), v.variance.to_bits())).collect();
+    v.sort_unstable();
+    v
+}
+
+fn on_threads<T: Send>(n: usize, f: impl FnOnce() -> T + Send) -> T {
+    rayon::ThreadPoolBuilder::new().num_threads(n).build().unwrap().install(f)
+}
+
+#[test]
+fn every_engine_keeps_the_engine_contract() {
+    let fr = frames();
+    for kind in EngineKind::ALL.iter().copied() {
+        let config = EngineConfig::new(kind, 0.05);
+        let map = on_threads(1, || build(&config, &fr));
+        assert!(map.occupied_count() > 100, "{kind}: {} occupied", map.occupied_count());
+
+        // The number of threads changes nothing.
+        assert_eq!(voxels(&map), voxels(&on_threads(3, || build(&config, &fr))), "{kind}: 1 vs 3 threads");
+
+        // An empty frame (no valid pixel) is no reading: the map of the others, unchanged.
+        let mut blank = fr[1].clone();
+        blank.depth = DepthImage::new(blank.depth.width(), blank.depth.height());
+        let with_blank = on_threads(1, || build(&config, &[fr[0].clone(), blank.clone(), fr[2].clone()]));
+        let without = on_threads(1, || build(&config, &[fr[0].clone(), fr[2].clone()]));
+        assert_eq!(voxels(&with_blank), voxels(&without), "{kind}: an empty frame changed the map");
+        assert!(on_threads(1, || build(&config, &[blank])).voxels.is_empty(), "{kind}: empty frame alone");
+
+        // NaN and infinite depths are no readings, as zeros are.
+        let (mut nan, mut zero) = (fr[0].clone(), fr[0].clone());
+        for v in (0..nan.depth.height()).step_by(3) {
+            for u in 0..nan.depth.width() {
+                nan.depth.set(u, v, if u % 2 == 0 { f32::NAN } else { f32::INFINITY });
+                zero.depth.set(u, v, 0.0);
+            }
+        }
+        let (nan_map, zero_map) = on_threads(1, || (build(&config, &[nan]), build(&config, &[zero])));
+        assert!(nan_map.occupied_count() > 10, "{kind}: the valid pixels still map");
+        assert_eq!(voxels(&nan_map), voxels(&zero_map), "{kind}: NaN depth is not a missing reading");
+
+        // Bounds the frames do not reach: nothing to map, and no error.
+        let mut away = config;
+        away.limits.bounds = Some(Aabb::new([50.0, 50.0, 50.0], [51.0, 51.0, 51.0]).unwrap());
+        assert!(on_threads(1, || build(&away, &fr)).voxels.is_empty(), "{kind}: voxels outside the bounds");
+
+        // The map file gives back every voxel, bit for bit, and what the map says of itself.
+        let tmp = tempfile::tempdir().unwrap();
+        let path = tmp.path().join("m.mrfmap");
+        map.save(&path).unwrap();
+        let back = Map::load(&path).unwrap();
+        assert_eq!(voxels(&back), voxels(&map), "{kind}: map file round trip");
+        assert_eq!(
+            (back.engine.as_str(), back.has_variance, &back.params),
+            (kind.name(), map.has_variance, &map.params)
+        );
+    }
+}

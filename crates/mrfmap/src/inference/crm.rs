@@ -236,15 +236,15 @@ fn beta_of(v: MapVoxel) -> (f64, f64) {
 
 /// Merging CRM maps ([`super::merge`]): each voxel moment-matched to a Beta, the two
 /// multiplied over the uniform prior.
-pub(super) fn merge_rule() -> super::merge::MergeRule {
-    Box::new(|a, b| {
+pub(super) fn merge_rule() -> impl Fn(MapVoxel, MapVoxel) -> MapVoxel {
+    |a, b| {
         let (aa, ba) = beta_of(a);
         let (ab, bb) = beta_of(b);
         // Parameters below a small floor would be a pdf CRM's particles cannot hold.
         let (al, be) = ((aa + ab - 1.0).max(0.05), (ba + bb - 1.0).max(0.05));
         let n = al + be;
         MapVoxel { occupancy: (al / n) as f32, variance: (al * be / (n * n * (n + 1.0))) as f32 }
-    })
+    }
 }
 
 /// Confidence-rich mapping.

@@ -17,7 +17,6 @@ use std::ops::ControlFlow;
 use rayon::prelude::*;
 use rustc_hash::FxHashMap;
 
-use super::merge::recorded;
 use super::{Engine, logit, sigmoid};
 use crate::error::{Error, Result};
 use crate::frames::{Frame, RangeScan};
@@ -132,14 +131,14 @@ pub enum Marking {
 
 crate::choice::choice!(Marking, "marking", Project => "project", Walk => "walk");
 
-/// Merging log-odds maps ([`super::merge`]): the sum of the log-odds, clamped to the map's
-/// clamping bounds.
-pub(super) fn merge_rule(map: &Map) -> Result<super::merge::MergeRule> {
-    let (lo, hi) = (logit(recorded(map, "clamp_min")?), logit(recorded(map, "clamp_max")?));
-    Ok(Box::new(move |a, b| MapVoxel {
+/// Merging log-odds maps ([`super::merge`]): the sum of the log-odds, clamped to the maps'
+/// clamping bounds (probabilities).
+pub(super) fn merge_rule(clamp_min: f64, clamp_max: f64) -> impl Fn(MapVoxel, MapVoxel) -> MapVoxel {
+    let (lo, hi) = (logit(clamp_min), logit(clamp_max));
+    move |a, b| MapVoxel {
         occupancy: sigmoid((logit(a.occupancy as f64) + logit(b.occupancy as f64)).clamp(lo, hi)) as f32,
         variance: 0.0,
-    }))
+    }
 }
 
 /// Log-odds occupancy mapping.

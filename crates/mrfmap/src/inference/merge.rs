@@ -20,9 +20,6 @@ use crate::Choice;
 use crate::error::{Error, Result};
 use crate::map::{Map, MapVoxel};
 
-/// How two voxels of one engine's maps combine.
-pub(super) type MergeRule = Box<dyn Fn(MapVoxel, MapVoxel) -> MapVoxel>;
-
 /// Both maps' evidence in one map (see the module documentation for what that means per
 /// engine). The maps must share engine and resolution.
 ///
@@ -50,10 +47,10 @@ pub fn merge(a: &Map, b: &Map) -> Result<Map> {
             b.resolution()
         )));
     }
-    let combine = match EngineKind::parse(&a.engine)? {
-        EngineKind::LogOdds => logodds::merge_rule(a)?,
-        EngineKind::Mrf => mrf::merge_rule(a)?,
-        EngineKind::Crm => crm::merge_rule(),
+    let combine: Box<dyn Fn(MapVoxel, MapVoxel) -> MapVoxel> = match EngineKind::parse(&a.engine)? {
+        EngineKind::LogOdds => Box::new(logodds::merge_rule(recorded(a, "clamp_min")?, recorded(a, "clamp_max")?)),
+        EngineKind::Mrf => Box::new(mrf::merge_rule(recorded(a, "prior")?)),
+        EngineKind::Crm => Box::new(crm::merge_rule()),
     };
     let mut out = a.clone();
     for (key, vb) in b.voxels.iter() {
@@ -68,7 +65,7 @@ pub fn merge(a: &Map, b: &Map) -> Result<Map> {
 }
 
 /// A number `map` records among its parameters, which merging needs.
-pub(super) fn recorded(map: &Map, name: &str) -> Result<f64> {
+fn recorded(map: &Map, name: &str) -> Result<f64> {
     let text = map.params.get(name).ok_or_else(|| {
         Error::Invalid(format!("the {} map does not record its {name}, which merging needs", map.engine))
     })?;

@@ -108,7 +108,6 @@ pub use schedule::RunReport;
 pub use tiles::TILE;
 use tiles::{Entry, Keyframe};
 
-use super::merge::recorded;
 use super::{Engine, logit, sigmoid};
 use crate::error::{Error, Result};
 use crate::frames::{Frame, NoiseModel, Pose, default_noise_model, moved_beyond};
@@ -125,13 +124,13 @@ pub struct KeyframeId(pub u64);
 const UNOBSERVED: f64 = 0.01;
 
 /// Merging MRF maps ([`super::merge`]): the marginals as independent evidence about the
-/// same prior.
-pub(super) fn merge_rule(map: &Map) -> Result<super::merge::MergeRule> {
-    let prior = logit(recorded(map, "prior")?);
-    Ok(Box::new(move |a, b| MapVoxel {
+/// same `prior`.
+pub(super) fn merge_rule(prior: f64) -> impl Fn(MapVoxel, MapVoxel) -> MapVoxel {
+    let prior = logit(prior);
+    move |a, b| MapVoxel {
         occupancy: sigmoid(logit(a.occupancy as f64) + logit(b.occupancy as f64) - prior) as f32,
         variance: 0.0,
-    }))
+    }
 }
 
 /// MRFMap inference over keyframes.

@@ -159,10 +159,12 @@ pub struct LaserOptions {
     /// Laser logs: FLASER/RLASER ranges at or beyond this are misses (no return).
     #[arg(long, default_value_t = 80.0, value_parser = super::positive)]
     pub laser_max_range: f64,
-    /// Laser logs: misses clear space up to --miss-range (free) or are dropped (ignore).
+    /// Laser logs and scan topics: misses clear space up to --miss-range (free) or are
+    /// dropped (ignore).
     #[arg(long, default_value = "free", value_parser = super::choice::<Misses>())]
     pub misses: Misses,
-    /// Laser logs: how far a miss clears space (metres; `inf`: up to --laser-max-range, as
+    /// Laser logs and scan topics: how far a miss clears space (metres; `inf`: up to the
+    /// laser's range, --laser-max-range or a LaserScan's range_max, as
     /// OctoMap reads a max-range beam). Default 5, Cartographer's `missing_data_ray_length`:
     /// a miss is as often glass, a dark or grazing wall as open space, and 80 m of free space
     /// through it would clear walls behind; 5 m clears a room's open floor.
@@ -177,6 +179,15 @@ impl LaserOptions {
     /// Reads the log at `path`.
     pub fn open(&self, path: &std::path::Path) -> Result<CarmenLog> {
         Ok(CarmenLog::open(path, CarmenOptions { spacing: self.beam_spacing, max_range: self.laser_max_range })?)
+    }
+
+    /// Applies `--misses` and `--miss-range` to a scan (a laser log's or a bag's): beams
+    /// without a return are dropped, or clear space up to the miss range.
+    pub fn apply_misses(&self, scan: &mut RangeScan) {
+        if self.misses == Misses::Ignore {
+            scan.beams.retain(|b| b.range.is_some());
+        }
+        scan.max_range = scan.max_range.min(self.miss_range);
     }
 
     /// The scans of `log` this asks for, planar at the middle of the map's layer 0 (`z = r / 2`),
@@ -203,7 +214,7 @@ impl LaserOptions {
                 let mut scan = r
                     .to_scan(i, 0.5 * resolution, self.beams_every as usize, self.misses, noise.clone())
                     .with_context(|| format!("{} line {}", log.path.display(), r.line))?;
-                scan.max_range = scan.max_range.min(self.miss_range);
+                self.apply_misses(&mut scan);
                 Ok(scan)
             })
             .collect()
@@ -802,7 +813,8 @@ pub fn run(a: Args) -> Result<()> {
     };
     let mut up = None;
     let (report, indices_used) = if let (true, Some(topic)) = (BagArgs::is_bag(&a.dataset), &a.bag.scan_topic) {
-        let scans = a.bag.scans(&a.dataset, topic, a.options.noise.as_deref())?;
+        let mut scans = a.bag.scans(&a.dataset, topic, a.options.noise.as_deref())?;
+        scans.iter_mut().for_each(|s| a.laser.apply_misses(s));
         let indices = select_frames(scans.len(), &a.frames, &a.exclude)?;
         let chosen: Vec<RangeScan> = indices.iter().map(|&i| scans[i].clone()).collect();
         check_build(&config, scan_extent(&chosen, &config), BUILD_ADVICE)?;

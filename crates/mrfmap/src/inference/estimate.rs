@@ -306,6 +306,9 @@ fn plan(count: usize, rays: f64, mean_length: f64, edge: f64) -> (usize, f64) {
 /// let poses = (0..10).map(|i| Pose::translation(2.0 * i as f64, 0.0, 0.0));
 /// let ten = frames_extent(poses, std::slice::from_ref(&frame), &config).unwrap();
 /// assert!(ten.bricks > 8.0 * one.bricks && ten.bricks <= 10.0 * one.bricks, "{}", ten.bricks);
+/// // No poses, or no sampled depth: nothing to estimate.
+/// assert!(frames_extent([], std::slice::from_ref(&frame), &config).is_none());
+/// assert!(frames_extent([Pose::identity()], &[], &config).is_none());
 /// ```
 pub fn frames_extent(
     poses: impl IntoIterator<Item = Pose>,
@@ -316,6 +319,9 @@ pub fn frames_extent(
     // The MRF keeps its keyframes only.
     if config.kind == EngineKind::Mrf {
         poses = config.mrf.keyframes.keep(&poses).into_iter().map(|i| poses[i]).collect();
+    }
+    if poses.is_empty() {
+        return None;
     }
     let first = sampled.first()?;
     let (pixels, f) = (
@@ -378,8 +384,16 @@ pub fn frames_extent(
 
 /// Where laser scans look and what their beams will allocate (misses up to the sensor's
 /// range), walked as [`frames_extent`] walks frames: beams are a fan, so each walked beam
-/// stands for its neighbours in one direction only.
+/// stands for its neighbours in one direction only. `None` without scans.
+///
+/// ```
+/// let config = mrfmap::inference::EngineConfig::new(mrfmap::inference::EngineKind::LogOdds, 0.05);
+/// assert!(mrfmap::inference::scan_extent(&[], &config).is_none());
+/// ```
 pub fn scan_extent(scans: &[RangeScan], config: &EngineConfig) -> Option<Extent> {
+    if scans.is_empty() {
+        return None;
+    }
     let default_noise = default_noise_model();
     let mut probe = Probe::new(config);
     let beams: usize = scans.iter().map(|s| s.beams.len()).sum();

@@ -5,20 +5,12 @@
 use mrfmap::frames::{DepthImage, Frame};
 use mrfmap::inference::{EngineConfig, EngineKind, new_engine};
 use mrfmap::map::{Aabb, Map};
-use mrfmap::source::Scene;
 
-/// A box on a floor seen from three sides by a small camera.
-const SCENE: &str = "[camera]\nfx = 60.0\nfy = 60.0\ncx = 39.5\ncy = 29.5\nwidth = 80\nheight = 60\n\
-    depth_scale = 5000.0\n[noise]\nbias = [0.0]\nstd = [0.01]\n\
-    [[box]]\nmin = [-3.0, -3.0, -0.2]\nmax = [3.0, 3.0, 0.0]\n\
-    [[box]]\nmin = [-0.4, -0.3, 0.0]\nmax = [0.4, 0.3, 0.7]\n\
-    [[view]]\neye = [2.0, 0.1, 1.0]\ntarget = [0.0, 0.0, 0.3]\n\
-    [[view]]\neye = [-2.0, 0.2, 1.2]\ntarget = [0.0, 0.0, 0.3]\n\
-    [[view]]\neye = [0.1, 2.0, 1.1]\ntarget = [0.0, 0.0, 0.3]\n";
+mod common;
 
+/// The box on the floor from three sides.
 fn frames() -> Vec<Frame> {
-    let scene = Scene::from_toml(SCENE, "contract.toml".as_ref()).unwrap();
-    scene.views.iter().enumerate().map(|(i, pose)| scene.frame(i, pose, Some(7))).collect()
+    common::box_on_floor_frames(7)[..3].to_vec()
 }
 
 fn build(config: &EngineConfig, frames: &[Frame]) -> Map {

@@ -8,21 +8,11 @@ use mrfmap::map::Aabb;
 use mrfmap::map::{Map, MapVoxel, VoxelState};
 use mrfmap::outputs::{LiveEngine, QueryOptions, query_box, query_point, query_segment};
 use mrfmap::random::Rng;
-use mrfmap::source::Scene;
 
-/// A box on a floor seen from four sides by a small camera.
-const SCENE: &str = "[camera]\nfx = 60.0\nfy = 60.0\ncx = 39.5\ncy = 29.5\nwidth = 80\nheight = 60\n\
-    depth_scale = 5000.0\n[noise]\nbias = [0.0]\nstd = [0.01]\n\
-    [[box]]\nmin = [-3.0, -3.0, -0.2]\nmax = [3.0, 3.0, 0.0]\n\
-    [[box]]\nmin = [-0.4, -0.3, 0.0]\nmax = [0.4, 0.3, 0.7]\n\
-    [[view]]\neye = [2.0, 0.1, 1.0]\ntarget = [0.0, 0.0, 0.3]\n\
-    [[view]]\neye = [-2.0, 0.2, 1.2]\ntarget = [0.0, 0.0, 0.3]\n\
-    [[view]]\neye = [0.1, 2.0, 1.1]\ntarget = [0.0, 0.0, 0.3]\n\
-    [[view]]\neye = [0.3, -2.0, 0.9]\ntarget = [0.0, 0.0, 0.3]\n";
+mod common;
 
 fn frames() -> Vec<Frame> {
-    let scene = Scene::from_toml(SCENE, "map-ops.toml".as_ref()).unwrap();
-    scene.views.iter().enumerate().map(|(i, pose)| scene.frame(i, pose, Some(3))).collect()
+    common::box_on_floor_frames(3)
 }
 
 fn config(kind: EngineKind) -> EngineConfig {

@@ -12,9 +12,11 @@
 //! bias-corrected reading, as they trace it.
 //!
 //! Bytes per brick and per voxel were measured (BENCHMARKS.md, "Memory estimates"): a
-//! log-odds build peaks at 8 KiB per brick (the engine's f32 grid and the finished map's
-//! copy, 8 bytes per voxel); CRM holds 4 (particles + 1) + 5 bytes per voxel, 5 KiB per brick
-//! (a slot table and the map's copy) and, while a frame is applied, 4 KiB per brick it
+//! log-odds build peaks at 8 KiB per dense brick (the engine's f32 grid and the finished
+//! map's copy, 8 bytes per voxel; bricks hold only their z-layers that hold voxels, so a
+//! planar map's take an eighth); CRM holds 4 (particles + 1) + 5 bytes per voxel, a slot
+//! table and the map's copy per brick (1 + 4 KiB dense) and, while a frame is applied, 4 KiB
+//! per brick it
 //! crosses; the MRF (band allocation) allocates
 //! two bricks per brick holding depth points, 5 KiB each for the marginals (and the values the
 //! change log compares with), and per keyframe 16 bytes per voxel its rays cross in those
@@ -43,10 +45,13 @@ pub fn estimate_memory(config: &EngineConfig, extent: &Extent) -> f64 {
     BASE_MEMORY
         + scratch
         + match config.kind {
-            EngineKind::LogOdds => LOGODDS_BRICK * extent.bricks,
+            EngineKind::LogOdds => LOGODDS_BRICK * extent.bricks + LOGODDS_LAYER * extent.layers,
             EngineKind::Crm => {
                 let per_voxel = 4.0 * (config.crm.particles as f64 + 1.0) + CRM_VOXEL;
-                CRM_BRICK * extent.bricks + per_voxel * extent.voxels + CRM_FRAME_BRICK * extent.bricks_per_reading
+                CRM_BRICK * extent.bricks
+                    + MAP_LAYER * extent.layers
+                    + per_voxel * extent.voxels
+                    + CRM_FRAME_BRICK * extent.bricks_per_reading
             }
             EngineKind::Mrf => {
                 let bricks = match config.mrf.allocation {
@@ -80,6 +85,9 @@ pub struct Extent {
     pub bricks: f64,
     /// Voxels the rays cross (estimated likewise; at most 512 per brick).
     pub voxels: f64,
+    /// Layers of 64 voxels (a brick's z-layers) that hold voxels: 8 per brick, or fewer where
+    /// the box is thinner than a brick (one in a planar laser's map).
+    pub layers: f64,
     /// Bricks one reading's rays cross, on average.
     pub bricks_per_reading: f64,
     /// Bricks holding ray end points. What the MRF allocates: bricks around depth points
@@ -235,7 +243,8 @@ impl<'a> Probe<'a> {
         let r = self.config.resolution;
         // Voxels per brick the box allows: 512, or fewer where it is thinner than a brick (a
         // planar laser's map is one voxel thick: 64 per brick).
-        let per_brick: f64 = (0..3).map(|a| (((max[a] - min[a]) / r).floor() + 1.0).min(BRICK_EDGE as f64)).product();
+        let across = |a: usize| (((max[a] - min[a]) / r).floor() + 1.0).min(BRICK_EDGE as f64);
+        let per_brick: f64 = (0..3).map(across).product();
         let readings = self.readings.max(1) as f64;
         let by_volume: f64 = (0..3).map(|a| ((max[a] - min[a]) / self.edge).ceil() + 1.0).product();
         if self.cut {
@@ -245,6 +254,7 @@ impl<'a> Probe<'a> {
                 max,
                 bricks: by_volume,
                 voxels: by_volume * per_brick,
+                layers: by_volume * across(2),
                 bricks_per_reading: by_volume,
                 surface_bricks: by_volume,
                 entries_per_reading: pixels * BRICK_EDGE as f64,
@@ -258,6 +268,7 @@ impl<'a> Probe<'a> {
             max,
             bricks: self.bricks.len() as f64,
             voxels,
+            layers: self.bricks.len() as f64 * across(2),
             bricks_per_reading: self.crossed / readings,
             surface_bricks: self.surface.len() as f64,
             entries_per_reading: self.entries / readings,
@@ -473,11 +484,18 @@ const BAND: f64 = 2.0;
 /// resident, 8 of them 640 x 480 frames).
 pub const BASE_MEMORY: f64 = 12.0 * 1048576.0;
 
-/// Bytes per brick of a log-odds map while it is built.
-const LOGODDS_BRICK: f64 = 8192.0;
-/// Bytes per brick of a CRM map besides its voxels: the slot table (1 KiB) and the finished
-/// map's copy (8 bytes for each of its 512 voxels, allocated or not).
-const CRM_BRICK: f64 = 5120.0;
+/// Bytes per brick of a log-odds map while it is built, besides its layers: the engine's grid
+/// and the finished map's copy, each a mask, a layer table and a hash table entry.
+const LOGODDS_BRICK: f64 = 512.0;
+/// Bytes per layer of 64 voxels of a log-odds map: 4 bytes per voxel in the engine's grid, 8
+/// in the finished map's copy, and room for the layers' vectors to grow (a dense brick
+/// measured 8 KiB in all).
+const LOGODDS_LAYER: f64 = 1024.0;
+/// Bytes per brick of a CRM map besides its voxels and the map's layers: the slot table
+/// (1 KiB) and the finished map's brick.
+const CRM_BRICK: f64 = 1280.0;
+/// Bytes per layer of 64 voxels of the finished map's copy (8 bytes each, allocated or not).
+const MAP_LAYER: f64 = 512.0;
 /// Bytes per CRM voxel besides its pdf: its mean and pending passes.
 const CRM_VOXEL: f64 = 5.0;
 /// Bytes per brick a frame crosses of a CRM frame's update: its passes per slot (2 KiB),

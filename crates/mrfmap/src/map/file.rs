@@ -126,9 +126,9 @@ pub(super) fn decode(bytes: &[u8]) -> std::result::Result<Map, String> {
     let mut map = Map::new(&header.engine, header.resolution).map_err(|e| format!("bad header: {e}"))?;
     map.params = header.params;
     map.has_variance = header.has_variance;
-    // Every brick takes at least 76 + 4 bytes of file and 4 KiB of memory: a header claiming
-    // more bricks than the file can hold fails here, before anything is allocated, and the
-    // memory the bricks will take is checked against the limit.
+    // Every brick takes at least 76 + 4 bytes of file: a header claiming more bricks than the
+    // file can hold fails here, before anything is allocated, and the memory the bricks will
+    // take (read off their masks) is checked against the limit.
     let min_brick = 80 + 4 * header.has_variance as u64;
     if header.bricks.saturating_mul(min_brick) > (body.len() - r.pos) as u64 {
         return Err(format!(
@@ -137,9 +137,8 @@ pub(super) fn decode(bytes: &[u8]) -> std::result::Result<Map, String> {
             body.len()
         ));
     }
-    let brick_bytes = std::mem::size_of::<crate::map::Brick<MapVoxel>>() as f64 + 64.0;
-    crate::limits::check_memory("loading the map", header.bricks as f64 * brick_bytes, "crop it on a larger machine")
-        .map_err(|e| e.to_string())?;
+    let needed = memory_needed(Reader { bytes: body, pos: r.pos }, header.bricks, 4 + 4 * header.has_variance as usize);
+    crate::limits::check_memory("loading the map", needed, "crop it on a larger machine").map_err(|e| e.to_string())?;
     let mut previous: Option<BrickKey> = None;
     for _ in 0..header.bricks {
         let key = BrickKey([r.i32()?, r.i32()?, r.i32()?]);
@@ -168,6 +167,25 @@ pub(super) fn decode(bytes: &[u8]) -> std::result::Result<Map, String> {
         return Err(format!("header says {} voxels, file holds {}", header.voxels, map.voxels.len()));
     }
     Ok(map)
+}
+
+/// The memory `bricks` bricks read from `r` take in a [`Map`]: per brick its own size and its
+/// hash table entry (at most twice over, as the table grows), per layer holding voxels 64
+/// voxels. Counts what a truncated file holds (the read proper then says where it stops).
+fn memory_needed(mut r: Reader, bricks: u64, bytes_per_voxel: usize) -> f64 {
+    let (mut counted, mut layers) = (0u64, 0u64);
+    while counted < bricks {
+        let Ok(mask) = r.take(12).and_then(|_| r.take(64)) else { break };
+        let words = mask.chunks_exact(8).map(|w| u64::from_le_bytes(w.try_into().unwrap()));
+        let (voxels, held) = words.fold((0, 0), |(v, l), w| (v + w.count_ones() as usize, l + (w != 0) as u64));
+        layers += held;
+        counted += 1;
+        if r.take(voxels * bytes_per_voxel).is_err() {
+            break;
+        }
+    }
+    let brick = 2 * (std::mem::size_of::<(BrickKey, crate::map::Brick<MapVoxel>)>() + 1);
+    counted as f64 * brick as f64 + layers as f64 * 64.0 * std::mem::size_of::<MapVoxel>() as f64
 }
 
 /// CRC-32 (IEEE 802.3, as zlib and PNG), bytewise with a table built at compile time.

@@ -1,9 +1,11 @@
 //! A sparse voxel grid of 8x8x8 bricks in a hash map (docs/ALGORITHMS.md section 4).
 //!
 //! Voxel `i` spans `[i r, (i+1) r)` per axis; its brick is `i >> 3` (floor division, so
-//! negative coordinates work) and its slot in the brick is `i & 7`. A brick stores all 512
-//! values densely plus a 512-bit mask of which voxels are allocated: unallocated means
-//! unknown. Bricks are boxed so rehashing moves pointers, not kilobytes.
+//! negative coordinates work) and its slot in the brick is `i & 7`. A brick holds a 512-bit
+//! mask of which voxels are allocated (unallocated means unknown) and the values of its
+//! z-layers that hold any: 64 values per layer, allocated as a layer's first voxel is (see
+//! [`Brick`]). The values live on the heap, so rehashing moves a hundred bytes a brick, not
+//! kilobytes.
 
 use rayon::prelude::*;
 use rustc_hash::FxHashMap;
@@ -184,37 +186,111 @@ impl<T> BrickList<T> {
     }
 }
 
-/// 8x8x8 voxels with an allocation mask.
+/// 8x8x8 voxels with an allocation mask, stored by layer: the 64 voxels of one z-layer (one
+/// word of the mask) are allocated together, the first time one of them is. A map from planar
+/// scans fills one layer of its bricks, a surface seen from above a few: they pay for what
+/// they hold, not for whole bricks (a laser log's map took 8x the memory it needed).
 #[derive(Clone, Debug)]
 pub struct Brick<V> {
     mask: SlotMask,
-    values: [V; BRICK_VOXELS],
+    /// Per layer, its place in `values` (in 64-value units), [`NO_LAYER`] if not allocated.
+    layer: [u8; 8],
+    /// 64 values per allocated layer, in the order the layers were allocated.
+    values: Vec<V>,
+}
+
+/// [`Brick::layer`] of a layer with no values.
+const NO_LAYER: u8 = u8::MAX;
+
+/// Voxels per layer of a brick (one mask word).
+const LAYER: usize = 64;
+
+/// [`Brick::layer`] of a brick whose layers are all allocated, in slot order.
+const NATURAL: [u8; 8] = [0, 1, 2, 3, 4, 5, 6, 7];
+
+impl<V: Copy + Default> Default for Brick<V> {
+    fn default() -> Self {
+        Brick { mask: [0; 8], layer: [NO_LAYER; 8], values: Vec::new() }
+    }
 }
 
 impl<V: Copy + Default> Brick<V> {
-    fn new() -> Self {
-        Brick { mask: [0; 8], values: [V::default(); BRICK_VOXELS] }
-    }
-
     /// Which slots are allocated.
     pub fn mask(&self) -> &SlotMask {
         &self.mask
     }
 
+    /// Where `slot`'s value is in `values` (its layer must be allocated).
+    #[inline]
+    fn at(&self, slot: usize) -> usize {
+        self.layer[slot / LAYER] as usize * LAYER + slot % LAYER
+    }
+
+    /// Allocates the layers of `slots` that have no values yet, all at once.
+    #[inline]
+    fn allocate_layers(&mut self, slots: &SlotMask) {
+        let missing: [bool; 8] = std::array::from_fn(|w| slots[w] != 0 && self.layer[w] == NO_LAYER);
+        let count = missing.iter().filter(|&&m| m).count();
+        if count == 0 {
+            return;
+        }
+        self.values.reserve(count * LAYER);
+        for w in (0..8).filter(|&w| missing[w]) {
+            self.layer[w] = (self.values.len() / LAYER) as u8;
+            self.values.resize(self.values.len() + LAYER, V::default());
+        }
+        // A brick with every layer keeps them in slot order, so that it reads as one array
+        // ([`Brick::dense`]).
+        if self.values.len() == BRICK_VOXELS && self.layer != NATURAL {
+            let mut ordered = Vec::with_capacity(BRICK_VOXELS);
+            for w in 0..8 {
+                let at = self.layer[w] as usize * LAYER;
+                ordered.extend_from_slice(&self.values[at..at + LAYER]);
+            }
+            (self.values, self.layer) = (ordered, NATURAL);
+        }
+    }
+
+    /// The 512 values in slot order when every voxel is allocated (a dense brick, read without
+    /// the mask and the layer table: the MRF's bricks are all dense).
+    #[inline]
+    pub fn dense(&self) -> Option<&[V; BRICK_VOXELS]> {
+        if self.mask != [u64::MAX; 8] {
+            return None;
+        }
+        self.values.as_slice().try_into().ok()
+    }
+
+    /// [`Brick::dense`], mutable.
+    #[inline]
+    pub fn dense_mut(&mut self) -> Option<&mut [V; BRICK_VOXELS]> {
+        if self.mask != [u64::MAX; 8] {
+            return None;
+        }
+        self.values.as_mut_slice().try_into().ok()
+    }
+
     /// Value at `slot` if allocated.
     #[inline]
     pub fn get(&self, slot: usize) -> Option<&V> {
-        mask_has(&self.mask, slot).then(|| &self.values[slot])
+        mask_has(&self.mask, slot).then(|| &self.values[self.at(slot)])
     }
 
     /// Mutable value at `slot`, allocating it with `init` first if needed.
     #[inline]
     pub fn get_or_insert(&mut self, slot: usize, init: V) -> &mut V {
         if !mask_has(&self.mask, slot) {
+            if self.layer[slot / LAYER] == NO_LAYER {
+                let mut one = [0; 8];
+                mask_set(&mut one, slot);
+                self.allocate_layers(&one);
+            }
             mask_set(&mut self.mask, slot);
-            self.values[slot] = init;
+            let at = self.at(slot);
+            self.values[at] = init;
         }
-        &mut self.values[slot]
+        let at = self.at(slot);
+        &mut self.values[at]
     }
 
     /// Calls `update` on the value of every slot in `slots`, allocating those not allocated
@@ -222,15 +298,20 @@ impl<V: Copy + Default> Brick<V> {
     /// time (per slot, the mask's test and set were a twentieth of a projected log-odds frame).
     #[inline]
     pub fn update_slots(&mut self, slots: &SlotMask, init: V, mut update: impl FnMut(&mut V)) {
-        let new: SlotMask = std::array::from_fn(|w| slots[w] & !self.mask[w]);
-        for slot in mask_slots(&new) {
-            self.values[slot] = init;
-        }
-        for (have, want) in self.mask.iter_mut().zip(slots) {
-            *have |= want;
-        }
-        for slot in mask_slots(slots) {
-            update(&mut self.values[slot]);
+        self.allocate_layers(slots);
+        for (w, &want) in slots.iter().enumerate().filter(|(_, want)| **want != 0) {
+            let base = self.layer[w] as usize * LAYER;
+            let layer = &mut self.values[base..base + LAYER];
+            let (mut new, mut all) = (want & !self.mask[w], want);
+            while new != 0 {
+                layer[new.trailing_zeros() as usize] = init;
+                new &= new - 1;
+            }
+            self.mask[w] |= want;
+            while all != 0 {
+                update(&mut layer[all.trailing_zeros() as usize]);
+                all &= all - 1;
+            }
         }
     }
 
@@ -244,7 +325,7 @@ impl<V: Copy + Default> Brick<V> {
         self.mask.iter().all(|w| *w == 0)
     }
 
-    /// Frees `slot` (unknown again); true if it was allocated.
+    /// Frees `slot` (unknown again); true if it was allocated. (Its layer keeps its values.)
     pub fn remove(&mut self, slot: usize) -> bool {
         let had = mask_has(&self.mask, slot);
         self.mask[slot >> 6] &= !(1 << (slot & 63));
@@ -254,12 +335,18 @@ impl<V: Copy + Default> Brick<V> {
     /// Mutable value at `slot` if allocated.
     #[inline]
     pub fn get_mut(&mut self, slot: usize) -> Option<&mut V> {
-        mask_has(&self.mask, slot).then(|| &mut self.values[slot])
+        let at = self.at(slot);
+        mask_has(&self.mask, slot).then(|| &mut self.values[at])
     }
 
     /// Allocated `(slot, value)` pairs in slot order.
     pub fn iter(&self) -> impl Iterator<Item = (usize, &V)> + '_ {
-        mask_slots(&self.mask).map(move |s| (s, &self.values[s]))
+        mask_slots(&self.mask).map(move |s| (s, &self.values[self.at(s)]))
+    }
+
+    /// Heap bytes of the values (what the brick holds beyond its own size).
+    pub fn heap_bytes(&self) -> usize {
+        self.values.capacity() * std::mem::size_of::<V>()
     }
 }
 
@@ -276,7 +363,7 @@ impl<V: Copy + Default> Brick<V> {
 #[derive(Clone, Debug)]
 pub struct Grid<V> {
     resolution: f64,
-    bricks: FxHashMap<BrickKey, Box<Brick<V>>>,
+    bricks: FxHashMap<BrickKey, Brick<V>>,
 }
 
 impl<V: Copy + Default> Grid<V> {
@@ -306,9 +393,7 @@ impl<V: Copy + Default> Grid<V> {
     /// Mutable value of an allocated voxel.
     #[inline]
     pub fn get_mut(&mut self, key: VoxelKey) -> Option<&mut V> {
-        let brick = self.bricks.get_mut(&key.brick())?;
-        let slot = key.slot();
-        mask_has(&brick.mask, slot).then(|| &mut brick.values[slot])
+        self.bricks.get_mut(&key.brick())?.get_mut(key.slot())
     }
 
     /// Frees a voxel (unknown again), dropping its brick when it was the last; true if it
@@ -337,22 +422,22 @@ impl<V: Copy + Default> Grid<V> {
 
     /// A brick, allocating an empty one if needed.
     pub fn brick_or_insert(&mut self, key: BrickKey) -> &mut Brick<V> {
-        self.bricks.entry(key).or_insert_with(|| Box::new(Brick::new()))
+        self.bricks.entry(key).or_default()
     }
 
     /// A brick if present.
     pub fn brick(&self, key: BrickKey) -> Option<&Brick<V>> {
-        self.bricks.get(&key).map(|b| &**b)
+        self.bricks.get(&key)
     }
 
     /// The brick `key`, mutable, if present.
     pub fn brick_mut(&mut self, key: BrickKey) -> Option<&mut Brick<V>> {
-        self.bricks.get_mut(&key).map(|b| &mut **b)
+        self.bricks.get_mut(&key)
     }
 
     /// Bricks in unspecified order.
     pub fn bricks(&self) -> impl Iterator<Item = (&BrickKey, &Brick<V>)> + '_ {
-        self.bricks.iter().map(|(k, b)| (k, &**b))
+        self.bricks.iter()
     }
 
     /// Calls `update` on the brick of every key of `work` with that key's value, allocating
@@ -370,10 +455,8 @@ impl<V: Copy + Default> Grid<V> {
     where
         V: Send,
     {
-        let mut taken: Vec<(BrickKey, Box<Brick<V>>, &T)> = work
-            .iter()
-            .map(|(k, t)| (*k, self.bricks.remove(k).unwrap_or_else(|| Box::new(Brick::new())), t))
-            .collect();
+        let mut taken: Vec<(BrickKey, Brick<V>, &T)> =
+            work.iter().map(|(k, t)| (*k, self.bricks.remove(k).unwrap_or_default(), t)).collect();
         taken.par_iter_mut().for_each(|(_, brick, t)| update(brick, t));
         self.bricks.extend(taken.into_iter().map(|(k, brick, _)| (k, brick)));
     }
@@ -407,8 +490,8 @@ impl<V: Copy + Default> Grid<V> {
 
     /// Bytes used by bricks and the hash table (an estimate of the heap footprint).
     pub fn memory_bytes(&self) -> usize {
-        let entry = std::mem::size_of::<(BrickKey, Box<Brick<V>>)>() + 1; // + hashbrown control byte
-        self.bricks.capacity() * entry + self.bricks.len() * std::mem::size_of::<Brick<V>>()
+        let entry = std::mem::size_of::<(BrickKey, Brick<V>)>() + 1; // + hashbrown control byte
+        self.bricks.capacity() * entry + self.bricks.values().map(Brick::heap_bytes).sum::<usize>()
     }
 
     /// Inclusive min and max voxel keys of allocated voxels, `None` when empty.
@@ -527,7 +610,7 @@ mod tests {
     #[test]
     fn update_slots_is_get_or_insert_per_slot() {
         let mut rng = Rng::new(17);
-        let (mut fast, mut slow) = (Brick::<u32>::new(), Brick::<u32>::new());
+        let (mut fast, mut slow) = (Brick::<u32>::default(), Brick::<u32>::default());
         for round in 0..50u32 {
             // Sparse and dense masks, overlapping what earlier rounds allocated.
             let slots: SlotMask = std::array::from_fn(|_| rng.next_u64() & rng.next_u64() & rng.next_u64());
@@ -540,5 +623,40 @@ mod tests {
             assert!(fast.iter().eq(slow.iter()), "round {round}");
         }
         assert!(fast.len() > 400, "the masks should have filled most of the brick");
+    }
+
+    #[test]
+    fn bricks_hold_the_layers_they_use() {
+        // A planar map: one z-layer per brick, 64 values each, not 512.
+        let mut grid: Grid<f32> = Grid::new(0.05).unwrap();
+        for x in -20..20 {
+            for y in -20..20 {
+                grid.insert(VoxelKey([x, y, 3]), (x * y) as f32);
+            }
+        }
+        let values: usize = grid.bricks().map(|(_, b)| b.heap_bytes()).sum();
+        assert_eq!(values, grid.brick_count() * 64 * 4);
+        assert!((-20..20).all(|x| grid.get(VoxelKey([x, x, 3])) == Some(&((x * x) as f32))));
+        assert_eq!(grid.get(VoxelKey([0, 0, 2])), None);
+        // Layers allocated out of order, by single voxels and by masks, removed and refilled.
+        let mut brick = Brick::<u32>::default();
+        *brick.get_or_insert(7 * 64 + 5, 1) += 1;
+        brick.update_slots(&[0, 0, 1 << 9, 0, 0, 0, 0, 1 << 5], 10, |v| *v += 100);
+        assert_eq!(brick.iter().map(|(s, v)| (s, *v)).collect::<Vec<_>>(), [(2 * 64 + 9, 110), (7 * 64 + 5, 102)]);
+        assert_eq!(brick.heap_bytes(), 2 * 64 * 4);
+        assert!(brick.remove(2 * 64 + 9) && !brick.remove(2 * 64 + 9));
+        assert_eq!((brick.get(2 * 64 + 9), brick.len()), (None, 1));
+        assert_eq!(*brick.get_or_insert(2 * 64 + 9, 5), 5, "a freed voxel comes back with its init");
+        assert_eq!(brick.get_mut(3), None);
+        assert!(brick.dense().is_none());
+        // Filled, whatever the order its layers came in, it reads as one array in slot order.
+        for slot in (0..BRICK_VOXELS).rev() {
+            brick.get_or_insert(slot, slot as u32);
+        }
+        let dense = brick.dense().unwrap();
+        assert!(dense.iter().enumerate().all(|(slot, &v)| brick.get(slot) == Some(&v)));
+        assert_eq!((dense[7 * 64 + 5], dense[2 * 64 + 9], dense[100]), (102, 5, 100));
+        brick.dense_mut().unwrap()[100] = 7;
+        assert_eq!(brick.get(100), Some(&7));
     }
 }

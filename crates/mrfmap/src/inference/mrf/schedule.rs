@@ -10,7 +10,7 @@ use super::MrfEngine;
 use super::tiles::Tile;
 use crate::inference::Engine;
 use crate::inference::sigmoid;
-use crate::map::{BRICK_EDGE, BrickKey, Grid, VoxelKey};
+use crate::map::{BRICK_EDGE, Brick, BrickKey, Grid, VoxelKey};
 
 /// What a schedule ([`MrfEngine::run`], [`MrfEngine::run_until`]) did.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -63,9 +63,9 @@ pub(super) fn largest_move(
         if !changed {
             continue;
         }
-        let Some(brick) = sums.brick(bk) else { return 1.0 };
+        let Some(brick) = sums.brick(bk).and_then(Brick::dense) else { return 1.0 };
         for e in tile.run(n) {
-            let Some(&s) = brick.get(e.slot()) else { return 1.0 };
+            let s = brick[e.slot()];
             // |d sigmoid| <= |dS| / 4: the exponentials only for changes that may matter.
             let seen = e.seen();
             if (s - seen).abs() as f64 > 4.0 * largest.max(floor) {
@@ -187,16 +187,17 @@ impl MrfEngine {
     /// [`MrfEngine::apply`] of `(slot, change)` pairs of brick `bk`.
     pub(super) fn apply_run(&mut self, bk: BrickKey, run: impl Iterator<Item = (usize, f32)>) {
         let theta = self.log_threshold;
-        let (Some(sums), Some(logged)) = (self.sums.brick_mut(bk), self.logged.brick_mut(bk)) else { return };
+        // (The MRF's bricks are dense: every voxel is allocated when its brick is.)
+        let sums = self.sums.brick_mut(bk).and_then(Brick::dense_mut);
+        let (Some(sums), Some(logged)) = (sums, self.logged.brick_mut(bk).and_then(Brick::dense_mut)) else { return };
         let mut moved = false;
         for (slot, d) in run {
-            if let (Some(s), Some(l)) = (sums.get_mut(slot), logged.get_mut(slot)) {
-                *s += d;
-                // |d sigmoid| <= |dS| / 4: the exponentials only for changes that may matter.
-                if (*s - *l).abs() as f64 > 4.0 * theta && (sigmoid(*s as f64) - sigmoid(*l as f64)).abs() > theta {
-                    *l = *s;
-                    moved = true;
-                }
+            let (s, l) = (&mut sums[slot], &mut logged[slot]);
+            *s += d;
+            // |d sigmoid| <= |dS| / 4: the exponentials only for changes that may matter.
+            if (*s - *l).abs() as f64 > 4.0 * theta && (sigmoid(*s as f64) - sigmoid(*l as f64)).abs() > theta {
+                *l = *s;
+                moved = true;
             }
         }
         if moved {

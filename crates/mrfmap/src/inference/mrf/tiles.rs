@@ -12,7 +12,7 @@ use super::{Allocation, KeyframeId, MrfEngine};
 use crate::frames::{Frame, NoiseModel};
 use crate::inference::Engine;
 use crate::inference::logit;
-use crate::map::{BRICK_EDGE, BRICK_VOXELS, BrickKey, VoxelKey};
+use crate::map::{BRICK_EDGE, BrickKey, VoxelKey};
 use crate::rays::{FrameRays, for_each_crossing, pose_parts};
 
 /// Pixels per side of a tile, the unit of bookkeeping and re-tracing (see the module docs).
@@ -301,10 +301,7 @@ impl MrfEngine {
             *refs += 1;
             if *refs == 1 {
                 for grid in [&mut self.sums, &mut self.logged] {
-                    let brick = grid.brick_or_insert(b);
-                    for slot in 0..BRICK_VOXELS {
-                        brick.get_or_insert(slot, prior);
-                    }
+                    grid.brick_or_insert(b).update_slots(&[u64::MAX; 8], prior, |_| ());
                 }
                 new.push(b);
             }
@@ -422,6 +419,7 @@ mod tests {
     use super::*;
     use crate::inference::MrfParams;
     use crate::inference::mrf::tests::test_scene;
+    use crate::map::BRICK_VOXELS;
 
     /// Every field of a packed entry reads back what was written, whatever its neighbours
     /// hold: messages bit for bit (removal subtracts exactly what went in), every damping state.

@@ -96,7 +96,7 @@ fn recent_slot(key: BrickKey) -> usize {
 /// lookup per voxel was a tenth of a trace, and sorting the voxels afterwards another 7%).
 struct SlotTable<'a> {
     key: BrickKey,
-    sums: Option<&'a Brick<f32>>,
+    sums: Option<&'a [f32; BRICK_VOXELS]>,
     index: Box<[u32; BRICK_VOXELS]>,
     set: SlotMask,
 }
@@ -132,7 +132,7 @@ impl<'a> TileScratch<'a> {
     /// The table of brick `key` with its sums in `grid`, `None` if the brick is not allocated
     /// (and has no table).
     #[inline]
-    fn table_of(&mut self, key: BrickKey, grid: &'a Grid<f32>) -> Option<(usize, Option<&'a Brick<f32>>)> {
+    fn table_of(&mut self, key: BrickKey, grid: &'a Grid<f32>) -> Option<(usize, Option<&'a [f32; BRICK_VOXELS]>)> {
         let slot = recent_slot(key);
         let t = match self.recent[slot] {
             (k, t) if k == key => t,
@@ -142,7 +142,8 @@ impl<'a> TileScratch<'a> {
                     t
                 }
                 None => {
-                    let t = match grid.brick(key) {
+                    // (The MRF's bricks are dense: every voxel is allocated when its brick is.)
+                    let t = match grid.brick(key).and_then(Brick::dense) {
                         Some(sums) => self.add_table(key, Some(sums)),
                         None => UNALLOCATED,
                     };
@@ -160,7 +161,7 @@ impl<'a> TileScratch<'a> {
         self.recent[recent_slot(key)] = (key, t);
     }
 
-    fn add_table(&mut self, key: BrickKey, sums: Option<&'a Brick<f32>>) -> u32 {
+    fn add_table(&mut self, key: BrickKey, sums: Option<&'a [f32; BRICK_VOXELS]>) -> u32 {
         if self.used == self.tables.len() {
             self.tables.push(SlotTable { key, sums, index: Box::new([u32::MAX; BRICK_VOXELS]), set: [0; 8] });
         }
@@ -357,7 +358,7 @@ impl MrfEngine {
                         }
                         // (A voxel of another brick: rounding at a brick face.)
                         let inside = c.key.brick() == key;
-                        let s = if inside { sums.get(c.key.slot()) } else { self.sums.get(c.key) };
+                        let s = if inside { Some(&sums[c.key.slot()]) } else { self.sums.get(c.key) };
                         if let Some(&s) = s {
                             let slot = if inside {
                                 scratch.voxel_in(table, c.key, None)

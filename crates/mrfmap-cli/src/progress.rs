@@ -11,17 +11,23 @@ pub fn set_quiet(quiet: bool) {
     QUIET.store(quiet, Ordering::Relaxed);
 }
 
-/// A bar over `len` steps labelled `what`.
-pub fn bar(len: u64, what: &str) -> ProgressBar {
+/// A bar over `len` steps labelled `what`; without a length (a recording read as it comes),
+/// a count of the steps done.
+pub fn bar(len: Option<usize>, what: &str) -> ProgressBar {
     if QUIET.load(Ordering::Relaxed) {
         return ProgressBar::hidden();
     }
-    let bar = ProgressBar::new(len);
-    bar.set_style(
-        ProgressStyle::with_template("{msg:>12} [{bar:30}] {pos}/{len} {elapsed_precise} eta {eta}")
-            .expect("static template")
-            .progress_chars("=> "),
-    );
+    let bar = match len {
+        Some(len) => ProgressBar::new(len as u64).with_style(
+            ProgressStyle::with_template("{msg:>12} [{bar:30}] {pos}/{len} {elapsed_precise} eta {eta}")
+                .expect("static template")
+                .progress_chars("=> "),
+        ),
+        None => ProgressBar::no_length().with_style(
+            ProgressStyle::with_template("{msg:>12} {pos} done {elapsed_precise} ({per_sec})")
+                .expect("static template"),
+        ),
+    };
     bar.set_message(what.to_string());
     bar
 }

@@ -20,7 +20,7 @@ use mrfmap::outputs::{
     query_polyline, query_segments, write_octomap, write_ply,
 };
 use mrfmap::rays::RayLimits;
-use mrfmap::source::bag::{Bag, BagOptions, depth_index, for_each_frame};
+use mrfmap::source::bag::{Bag, BagOptions, for_each_frame};
 use nalgebra::{Matrix3, Rotation3, Translation3, UnitQuaternion};
 use numpy::{PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2};
 use pyo3::exceptions::{PyMemoryError, PyOSError, PyValueError};
@@ -276,40 +276,28 @@ impl Mapper {
         max_pose_gap: f64,
     ) -> PyResult<usize> {
         let options = BagOptions { depth_topic, camera_info_topic, fixed_frame, pose_topic, max_pose_gap };
-        // Two passes, streamed: the camera, poses and image headers first, then the images one
-        // at a time (memory holds a few, whatever the bag's size).
-        let (bag, index) = py
-            .detach(|| {
-                let bag = Bag::open(&path)?;
-                let index = depth_index(&bag, &options, None, 0)?;
-                Ok::<_, mrfmap::Error>((bag, index))
-            })
-            .map_err(py_err)?;
-        if index.frames.is_empty() {
-            return Err(PyValueError::new_err(format!(
-                "{}: no image of {} has a pose",
-                path.display(),
-                options.depth_topic
-            )));
-        }
-        let (c, m) = (index.camera, self.camera);
-        if (c.fx, c.fy, c.cx, c.cy, c.width, c.height) != (m.fx, m.fy, m.cx, m.cy, m.width, m.height) {
-            return Err(PyValueError::new_err(format!(
-                "{}: the bag's camera (fx {}, fy {}, cx {}, cy {}, {}x{}) is not this mapper's",
-                path.display(),
-                c.fx,
-                c.fy,
-                c.cx,
-                c.cy,
-                c.width,
-                c.height
-            )));
-        }
+        // One pass: each image is decoded and added once its pose is known (memory holds a
+        // few images, whatever the bag's size).
         let start = *self.frames.lock().unwrap_or_else(|p| p.into_inner());
         let mut added = 0;
         let result = py.detach(|| {
+            let bag = Bag::open(&path)?;
             let mut inner = self.lock();
-            for_each_frame(&bag, &index, |mut frame| {
+            let m = self.camera;
+            let report = for_each_frame(&bag, &options, None, |mut frame| {
+                let c = frame.camera;
+                if (c.fx, c.fy, c.cx, c.cy, c.width, c.height) != (m.fx, m.fy, m.cx, m.cy, m.width, m.height) {
+                    return Err(mrfmap::Error::Invalid(format!(
+                        "{}: the bag's camera (fx {}, fy {}, cx {}, cy {}, {}x{}) is not this mapper's",
+                        path.display(),
+                        c.fx,
+                        c.fy,
+                        c.cx,
+                        c.cy,
+                        c.width,
+                        c.height
+                    )));
+                }
                 frame.index = start + added;
                 frame.noise = self.noise.clone();
                 match &mut *inner {
@@ -318,7 +306,15 @@ impl Mapper {
                 }
                 added += 1;
                 Ok(std::ops::ControlFlow::Continue(()))
-            })
+            })?;
+            if report.frames == 0 {
+                return Err(mrfmap::Error::Invalid(format!(
+                    "{}: no image of {} has a pose",
+                    path.display(),
+                    options.depth_topic
+                )));
+            }
+            Ok(())
         });
         // Frames added before an error still count.
         *self.frames.lock().unwrap_or_else(|p| p.into_inner()) = start + added;

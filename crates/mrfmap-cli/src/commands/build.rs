@@ -17,7 +17,7 @@ use mrfmap::map::Aabb;
 use mrfmap::map::Map;
 use mrfmap::rays::RayLimits;
 #[cfg(feature = "bags")]
-use mrfmap::source::bag::{Bag, BagFrames, BagOptions, bag_frames, bag_scans, depth_index};
+use mrfmap::source::bag::{Bag, BagOptions, DepthStream, bag_frames, bag_scans, for_each_frame};
 use mrfmap::source::{BeamSpacing, CarmenLog, CarmenOptions, Dataset, Misses};
 use std::io::Write;
 
@@ -279,22 +279,19 @@ impl BagArgs {
         {
             let (options, noise) = self.depth_options(noise)?;
             let (frames, skipped) = bag_frames(&Bag::open(path)?, &options, noise)?;
-            posed(path, &options.depth_topic, frames, &skipped)
+            posed(path, &options.depth_topic, frames.len(), &skipped)?;
+            Ok(frames)
         }
     }
 
-    /// Calls `visit` with the bag's posed depth frames one at a time, in stamp order, and
-    /// returns how many there were (skipped images are summarised in a warning; none posed is
-    /// an error).
+    /// Calls `visit` with the bag's posed depth frames one at a time, in stamp order, in one
+    /// pass, and returns how many there were (skipped images are summarised in a warning;
+    /// none posed is an error).
     #[cfg(feature = "bags")]
     pub fn each_frame(&self, path: &std::path::Path, mut visit: impl FnMut(Frame) -> Result<()>) -> Result<usize> {
         let (options, _) = self.depth_options(None)?;
-        let bag = Bag::open(path)?;
-        let index = depth_index(&bag, &options, None, 0)?;
-        let all: Vec<usize> = (0..index.frames.len()).collect();
-        posed(path, &options.depth_topic, all, &index.skipped)?;
         let mut failed = None;
-        mrfmap::source::bag::for_each_frame(&bag, &index, |frame| {
+        let report = for_each_frame(&Bag::open(path)?, &options, None, |frame| {
             Ok(match visit(frame) {
                 Ok(()) => std::ops::ControlFlow::Continue(()),
                 Err(e) => {
@@ -303,17 +300,19 @@ impl BagArgs {
                 }
             })
         })?;
-        match failed {
-            Some(e) => Err(e),
-            None => Ok(index.frames.len()),
+        if let Some(e) = failed {
+            return Err(e);
         }
+        posed(path, &options.depth_topic, report.frames, &report.skipped)?;
+        Ok(report.frames)
     }
 
-    /// Builds with `build` from the bag's posed depth images, streamed: a first pass reads
-    /// the camera, the poses and every image's header (and decodes a few images for the
-    /// memory estimate), then the chosen frames are decoded one at a time as `build` takes
-    /// them, so memory holds a few images whatever the bag's size. Returns the build and the
-    /// frames used.
+    /// Builds with `build` from the bag's posed depth images, read once: each image is decoded
+    /// and handed to `build` as soon as its pose is known, so memory holds a few images
+    /// whatever the bag's size. A stream's length is known only at its end, so the memory
+    /// estimate is checked as it grows ([`Growth`]) and `--frames` / `--exclude` indices are
+    /// checked against the images at the end (before anything is written). Returns the build
+    /// and the frames used.
     pub fn build_streamed(
         &self,
         path: &std::path::Path,
@@ -327,24 +326,36 @@ impl BagArgs {
         #[cfg(feature = "bags")]
         {
             let (bag_options, noise) = self.depth_options(noise)?;
-            let bag = Bag::open(path)?;
-            let index = depth_index(&bag, &bag_options, noise, SAMPLE_FRAMES)?;
-            let all: Vec<usize> = (0..index.frames.len()).collect();
-            posed(path, &bag_options.depth_topic, all, &index.skipped)?;
-            let indices = select_frames(index.frames.len(), frames, exclude)?;
-            let poses = indices.iter().map(|&i| index.frames[i].1);
-            let extent = frames_extent(poses, &index.sample, config);
-            check_build(config, extent, BUILD_ADVICE)?;
+            let topic = bag_options.depth_topic.clone();
+            let mut stream = DepthStream::new(Bag::open(path)?, bag_options, noise);
             tracing::info!(
-                "{}: {} of {} depth images, engine {}, resolution {} m (streamed)",
+                "{}: depth images of {topic}, engine {}, resolution {} m (streamed)",
                 path.display(),
-                indices.len(),
-                index.frames.len(),
                 config.kind.name(),
                 config.resolution
             );
-            let mut frames = BagFrames::new(bag, Arc::new(index));
-            Ok((build(&indices, &mut |i| frames.frame(i))?, indices))
+            let (mut growth, mut used) = (Growth::new(config), Vec::new());
+            let report = {
+                let mut chosen = stream.by_ref().filter_map(|frame| {
+                    let frame = match frame {
+                        Ok(f) if (!frames.is_empty() && !frames.contains(&f.index)) || exclude.contains(&f.index) => {
+                            return None;
+                        }
+                        other => other,
+                    };
+                    Some(frame.and_then(|f| {
+                        growth.add(&f)?;
+                        used.push(f.index);
+                        Ok((f.index, f))
+                    }))
+                });
+                build(&mut chosen, None)?
+            };
+            let streamed = stream.report().context("the bag's reader stopped without a report")?;
+            posed(path, &topic, streamed.frames, &streamed.skipped)?;
+            // (The selection again, now that the number of frames is known: its errors.)
+            select_frames(streamed.frames, frames, exclude)?;
+            Ok((report, used))
         }
     }
 
@@ -361,14 +372,17 @@ impl BagArgs {
         {
             let noise = noise.map(|p| NoiseModel::load(p).map(|n| NoiseModel::aggregate(n.bias, n.std))).transpose()?;
             let (scans, skipped) = bag_scans(&Bag::open(path)?, topic, &self.options(String::new()), noise)?;
-            posed(path, topic, scans, &skipped)
+            posed(path, topic, scans.len(), &skipped)?;
+            Ok(scans)
         }
     }
 }
 
-/// A build from the frames `indices`, each fetched by index (in ascending order).
-pub type FrameBuild<'a> =
-    dyn FnMut(&[usize], &mut dyn FnMut(usize) -> mrfmap::Result<Frame>) -> Result<BuildReport> + 'a;
+/// A build from frames as they come, each with its index, and how many will come if known.
+pub type FrameBuild<'a> = dyn FnMut(&mut Readings<'_, Frame>, Option<usize>) -> Result<BuildReport> + 'a;
+
+/// Readings as they come, each with its index.
+pub type Readings<'a, R> = dyn Iterator<Item = mrfmap::Result<(usize, R)>> + 'a;
 
 /// The error for a bag given to a binary built without the `bags` feature (`_unused`: the
 /// arguments only a bag reader would read).
@@ -381,9 +395,9 @@ fn without_bags<T>(path: &std::path::Path, _unused: T) -> anyhow::Error {
     )
 }
 
-/// `items` with a warning for the `skipped` ones, or an error when none has a pose.
+/// A warning for the `skipped` messages, or an error when none of them had a pose (`count`).
 #[cfg(feature = "bags")]
-fn posed<T>(path: &std::path::Path, topic: &str, items: Vec<T>, skipped: &[String]) -> Result<Vec<T>> {
+fn posed(path: &std::path::Path, topic: &str, count: usize, skipped: &[String]) -> Result<()> {
     if let Some(first) = skipped.first() {
         tracing::warn!(
             "{}: {topic}: {} message(s) skipped without a pose (first: {first})",
@@ -391,10 +405,48 @@ fn posed<T>(path: &std::path::Path, topic: &str, items: Vec<T>, skipped: &[Strin
             skipped.len()
         );
     }
-    if items.is_empty() {
+    if count == 0 {
         bail!("{}: no image or scan of {topic} has a pose", path.display());
     }
-    Ok(items)
+    Ok(())
+}
+
+/// The memory check of a streamed build: the map's estimate from the poses so far and a few
+/// frames spread over them, checked each time the number of frames doubles (a recording's
+/// length is known only at its end). The map only grows, so a build that cannot fit is
+/// stopped while its map is at most twice what fits, not after it has outgrown the machine.
+#[cfg(feature = "bags")]
+struct Growth<'a> {
+    config: &'a EngineConfig,
+    poses: Vec<mrfmap::frames::Pose>,
+    /// Every `stride`-th frame, at most `2 SAMPLE_FRAMES` of them (the stride doubles).
+    sample: Vec<(usize, Frame)>,
+    stride: usize,
+}
+
+#[cfg(feature = "bags")]
+impl<'a> Growth<'a> {
+    fn new(config: &'a EngineConfig) -> Self {
+        Growth { config, poses: Vec::new(), sample: Vec::new(), stride: 1 }
+    }
+
+    fn add(&mut self, frame: &Frame) -> mrfmap::Result<()> {
+        let n = self.poses.len();
+        self.poses.push(frame.pose);
+        if n.is_multiple_of(self.stride) {
+            self.sample.push((n, frame.clone()));
+            if self.sample.len() > 2 * SAMPLE_FRAMES {
+                self.stride *= 2;
+                let stride = self.stride;
+                self.sample.retain(|(i, _)| i.is_multiple_of(stride));
+            }
+        }
+        if !(n + 1).is_power_of_two() {
+            return Ok(());
+        }
+        let sampled: Vec<Frame> = self.sample.iter().map(|(_, f)| f.clone()).collect();
+        check_build(self.config, frames_extent(self.poses.iter().copied(), &sampled, self.config), BUILD_ADVICE)
+    }
 }
 
 #[derive(clap::Args)]
@@ -664,23 +716,26 @@ pub fn dataset_extent(dataset: &Dataset, indices: &[usize], config: &EngineConfi
 pub fn build_map<R: Reading>(
     indices: &[usize],
     config: &EngineConfig,
-    reading: impl FnMut(usize) -> mrfmap::Result<R>,
+    mut reading: impl FnMut(usize) -> mrfmap::Result<R>,
 ) -> Result<BuildReport> {
-    build_map_with(indices, config, reading, None)
+    let mut readings = indices.iter().map(|&i| reading(i).map(|r| (i, r)));
+    build_map_with(&mut readings, Some(indices.len()), config, None)
 }
 
-/// [`build_map`], writing `snapshots` as it goes.
+/// [`build_map`] from readings as they come (`count` of them, if known), writing `snapshots`
+/// as it goes.
 pub fn build_map_with<R: Reading>(
-    indices: &[usize],
+    readings: &mut Readings<'_, R>,
+    count: Option<usize>,
     config: &EngineConfig,
-    mut reading: impl FnMut(usize) -> mrfmap::Result<R>,
     mut snapshots: Option<Snapshots>,
 ) -> Result<BuildReport> {
     let mut engine = new_engine(config)?;
-    let bar = crate::progress::bar(indices.len() as u64, config.kind.name());
-    let mut integrate_time = Duration::ZERO;
-    for &i in indices {
-        let reading = reading(i)?;
+    let bar = crate::progress::bar(count, config.kind.name());
+    let (mut integrate_time, mut frames) = (Duration::ZERO, 0);
+    for reading in readings {
+        let (i, reading) = reading?;
+        frames += 1;
         let t = Instant::now();
         reading.integrate_into(engine.as_mut()).with_context(|| format!("integrating reading {i}"))?;
         integrate_time += t.elapsed();
@@ -696,34 +751,35 @@ pub fn build_map_with<R: Reading>(
         tracing::info!("{written} snapshots written");
     }
     let t = Instant::now();
-    let bar = crate::progress::bar(0, "inference");
+    let bar = crate::progress::bar(Some(0), "inference");
     engine.finish_with_progress(&mut |done, total| {
         bar.set_length(total as u64);
         bar.set_position(done as u64);
     })?;
     bar.finish_and_clear();
     integrate_time += t.elapsed();
-    Ok(BuildReport { map: engine.map(), frames: indices.len(), integrate_time })
+    Ok(BuildReport { map: engine.map(), frames, integrate_time })
 }
 
-/// Feeds the frames `indices` (fetched through `reading`) to an MRF engine in order on its
+/// Feeds frames as they come (`count` of them, if known) to an MRF engine in order on its
 /// online schedule ([`MrfEngine::add_keyframe_within`]), with a progress bar of keyframes,
 /// per-keyframe milliseconds and backlog, and the timings CSV `online` asks for.
 pub fn build_online(
-    indices: &[usize],
+    readings: &mut Readings<'_, Frame>,
+    count: Option<usize>,
     config: &EngineConfig,
-    reading: &mut dyn FnMut(usize) -> mrfmap::Result<Frame>,
     online: &OnlineArgs,
     mut snapshots: Option<Snapshots>,
 ) -> Result<BuildReport> {
     config.limits.validate()?;
     let mut engine = MrfEngine::new(config.resolution, config.limits, config.mrf)?;
     let budget = Budget { ms: online.budget_ms, tiles: online.budget_tiles };
-    let bar = crate::progress::bar(indices.len() as u64, "mrf online");
+    let bar = crate::progress::bar(count, "mrf online");
     let mut rows = Vec::new();
-    let mut integrate_time = Duration::ZERO;
-    for &i in indices {
-        let frame = reading(i)?;
+    let (mut integrate_time, mut frames) = (Duration::ZERO, 0);
+    for reading in readings {
+        let (i, frame) = reading?;
+        frames += 1;
         let frame_time = frame.timestamp;
         if engine.is_new_keyframe(&frame.pose) {
             let (_, r) = engine.add_keyframe_within(frame, budget).with_context(|| format!("integrating frame {i}"))?;
@@ -766,7 +822,7 @@ pub fn build_online(
             Ok(())
         })?;
     }
-    Ok(BuildReport { map: engine.map(), frames: indices.len(), integrate_time })
+    Ok(BuildReport { map: engine.map(), frames, integrate_time })
 }
 
 pub fn run(a: Args) -> Result<()> {
@@ -807,9 +863,9 @@ pub fn run(a: Args) -> Result<()> {
         );
     }
     let mut snapshots = a.snapshots.snapshots()?;
-    let mut build = |indices: &[usize], reading: &mut dyn FnMut(usize) -> mrfmap::Result<Frame>| match online {
-        Some(o) => build_online(indices, &config, reading, o, snapshots.take()),
-        None => build_map_with(indices, &config, reading, snapshots.take()),
+    let mut build = |readings: &mut Readings<'_, Frame>, count: Option<usize>| match online {
+        Some(o) => build_online(readings, count, &config, o, snapshots.take()),
+        None => build_map_with(readings, count, &config, snapshots.take()),
     };
     let mut up = None;
     let (report, indices_used) = if let (true, Some(topic)) = (BagArgs::is_bag(&a.dataset), &a.bag.scan_topic) {
@@ -822,9 +878,7 @@ pub fn run(a: Args) -> Result<()> {
         (build_map(&indices, &config, |i| Ok(scans[i].clone()))?, indices)
     } else if BagArgs::is_bag(&a.dataset) {
         let pick = (a.frames.as_slice(), a.exclude.as_slice());
-        a.bag.build_streamed(&a.dataset, a.options.noise.as_deref(), pick, &config, &mut |indices, reading| {
-            build(indices, reading)
-        })?
+        a.bag.build_streamed(&a.dataset, a.options.noise.as_deref(), pick, &config, &mut build)?
     } else if a.dataset.is_file() {
         let log = a.laser.open(&a.dataset)?;
         let scans = a.laser.scans(&log, a.resolution, a.options.noise.as_deref())?;
@@ -851,7 +905,8 @@ pub fn run(a: Args) -> Result<()> {
             a.resolution
         );
         up = dataset.up();
-        (build(&indices, &mut |i| dataset.frame(i))?, indices)
+        let mut readings = indices.iter().map(|&i| dataset.frame(i).map(|f| (i, f)));
+        (build(&mut readings, Some(indices.len()))?, indices)
     };
     let mut map = report.map;
     // What went in, so `eval` can tell held-out views from views the map was built from.

@@ -103,7 +103,7 @@ pub fn run(a: Args) -> Result<()> {
     if pairs.is_empty() {
         bail!("no PNG file names appear in both {} and {}", a.measured.display(), a.truth.display());
     }
-    let bar = crate::progress::bar(pairs.len() as u64, "calibrate");
+    let bar = crate::progress::bar(Some(pairs.len()), "calibrate");
     for name in &pairs {
         let m_path = a.measured.join(name);
         let t_path = a.truth.join(name);

@@ -286,7 +286,7 @@ pub fn run(a: Args) -> Result<()> {
         let mut by_metric = Vec::new();
         for &rule in &a.metric.metric {
             let scorer = scorer(&map, &a.metric, rule, noise.as_deref())?;
-            let bar = crate::progress::bar(views.len() as u64, "scoring");
+            let bar = crate::progress::bar(Some(views.len()), "scoring");
             let mut scores = Vec::new();
             for &v in &views {
                 scores.push((v, score(&scorer, &dataset, v, target)?));

@@ -107,7 +107,7 @@ impl NoiseArgs {
     /// Writes `clean` made noisy to `out` (which must not exist), with a progress bar.
     pub fn write(&self, clean: &Dataset, out: &Path) -> Result<NoisySummary> {
         let noise = self.noise()?;
-        let bar = crate::progress::bar(clean.len() as u64, "add-noise");
+        let bar = crate::progress::bar(Some(clean.len()), "add-noise");
         let summary = add_noise(clean, out, &noise, self.seed, |done| bar.set_position(done as u64))
             .with_context(|| format!("adding noise to {}", clean.root().display()))?;
         bar.finish_and_clear();

@@ -73,7 +73,7 @@ pub fn crm_icl(a: Args) -> Result<()> {
     let (crm_prior, logodds_prior) = (Method::Crm(a.particles as usize).prior(), (0.5, 0.5));
     let mut seconds = (0.0, 0.0);
     let mut steps = Vec::new();
-    let bar = crate::progress::bar(noisy.len() as u64, "crm, log-odds");
+    let bar = crate::progress::bar(Some(noisy.len()), "crm, log-odds");
     for i in 0..noisy.len() {
         let frame = noisy.frame(i)?;
         let t = Instant::now();

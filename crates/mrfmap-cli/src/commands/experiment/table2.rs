@@ -175,7 +175,7 @@ fn score(
     let params = AccuracyParams { sigma: CONSTANT_SIGMA, k: 1.0, peak: PeakRule::Exit, ..AccuracyParams::for_map(map) };
     let scorer = Scorer::new(map, params);
     let (mut a, mut b) = (Vec::new(), Vec::new());
-    let bar = crate::progress::bar(views.len() as u64, "scoring");
+    let bar = crate::progress::bar(Some(views.len()), "scoring");
     for &view in views {
         let frame = data.frame(view)?;
         let truth = data.truth_depth(view)?.context("add-noise writes gt_depth/")?;

@@ -10,21 +10,33 @@ use nalgebra::{Quaternion, Translation3, UnitQuaternion};
 use super::msgs::Transform;
 use crate::frames::Pose;
 
-/// Samples of one moving transform, sorted by time.
+/// Samples of one moving transform, kept sorted by time as they come (in order, usually: a
+/// sample is appended; one out of order is put in its place).
 #[derive(Clone, Debug, Default)]
 pub struct Series {
     samples: Vec<(f64, Pose)>,
 }
 
 impl Series {
-    /// Adds a sample (any order; [`Series::sort`] before lookups).
+    /// Adds a sample, in any order.
     pub fn push(&mut self, stamp: f64, t: &Transform) {
-        self.samples.push((stamp, pose_of(t)));
+        let at = self.samples.partition_point(|s| s.0 <= stamp);
+        self.samples.insert(at, (stamp, pose_of(t)));
     }
 
-    /// Sorts by time, as lookups need.
-    pub fn sort(&mut self) {
-        self.samples.sort_by(|a, b| a.0.total_cmp(&b.0));
+    /// The latest sample's time.
+    pub fn latest(&self) -> Option<f64> {
+        self.samples.last().map(|s| s.0)
+    }
+
+    /// Lets go of the samples no lookup at `t` or later needs (all before the last one at or
+    /// before `t`), once they are at least half of the samples held (so a recording's series
+    /// stays short, at a cost per sample that does not grow with it).
+    pub fn forget_before(&mut self, t: f64) {
+        let needed = self.samples.partition_point(|s| s.0 <= t).saturating_sub(1);
+        if needed > 0 && 2 * needed >= self.samples.len() {
+            self.samples.drain(..needed);
+        }
     }
 
     /// Number of samples.
@@ -100,9 +112,19 @@ impl TfBuffer {
         }
     }
 
-    /// Sorts every series; call once after inserting.
-    pub fn finish(&mut self) {
-        self.edges.values_mut().for_each(|e| e.series.sort());
+    /// Lets go of the samples no lookup at `t` or later needs ([`Series::forget_before`]).
+    pub fn forget_before(&mut self, t: f64) {
+        self.edges.values_mut().for_each(|e| e.series.forget_before(t));
+    }
+
+    /// The time up to which every moving transform is known: the earliest of their latest
+    /// samples (infinite when none moves; `None` when the tree is empty).
+    pub fn known_until(&self) -> Option<f64> {
+        if self.edges.is_empty() {
+            return None;
+        }
+        let moving = self.edges.values().filter(|e| e.fixed.is_none()).filter_map(|e| e.series.latest());
+        Some(moving.fold(f64::INFINITY, f64::min))
     }
 
     /// All frames named in the tree.
@@ -170,7 +192,7 @@ mod tests {
         tf.insert("odom", "base", 1.0, &tr(0.0, 0.0), false);
         tf.insert("odom", "base", 2.0, &tr(2.0, std::f64::consts::FRAC_PI_2), false);
         tf.insert("base", "camera", 0.0, &tr(0.5, 0.0), true);
-        tf.finish();
+        assert_eq!(tf.known_until(), Some(2.0));
         // Halfway: base at x = 1 turned 45 degrees; the camera 0.5 m ahead of it.
         let p = tf.lookup("map", "camera", 1.5, 1.0).unwrap();
         let h = std::f64::consts::FRAC_PI_4;
@@ -188,5 +210,21 @@ mod tests {
         assert!(tf.lookup("map", "camera", 1.5, 0.5).unwrap_err().contains("apart"));
         assert!(tf.lookup("map", "laser", 1.5, 1.0).unwrap_err().contains("does not connect"));
         assert_eq!(tf.frames(), ["base", "camera", "map", "odom"]);
+    }
+
+    #[test]
+    fn series_stay_sorted_and_short() {
+        let mut s = Series::default();
+        for t in [1.0, 3.0, 2.0, 4.0, 0.5] {
+            s.push(t, &tr(t, 0.0));
+        }
+        assert_eq!(s.samples.iter().map(|x| x.0).collect::<Vec<_>>(), [0.5, 1.0, 2.0, 3.0, 4.0]);
+        assert!((s.at(2.5, 1.0).unwrap().translation.x - 2.5).abs() < 1e-12, "out-of-order samples interpolate");
+        s.forget_before(3.5);
+        // The sample at 3 still answers 3.5; the ones before it are gone.
+        assert_eq!(s.samples.iter().map(|x| x.0).collect::<Vec<_>>(), [3.0, 4.0]);
+        assert!((s.at(3.5, 1.0).unwrap().translation.x - 3.5).abs() < 1e-12);
+        s.forget_before(3.9);
+        assert_eq!(s.len(), 2, "the sample at 3 still answers 3.9");
     }
 }

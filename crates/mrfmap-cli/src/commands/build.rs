@@ -419,7 +419,7 @@ fn posed(path: &std::path::Path, topic: &str, count: usize, skipped: &[String]) 
 struct Growth<'a> {
     config: &'a EngineConfig,
     poses: Vec<mrfmap::frames::Pose>,
-    /// Every `stride`-th frame, at most `2 SAMPLE_FRAMES` of them (the stride doubles).
+    /// Every `stride`-th frame, at most `SAMPLE_FRAMES` of them (the stride doubles).
     sample: Vec<(usize, Frame)>,
     stride: usize,
 }
@@ -435,7 +435,7 @@ impl<'a> Growth<'a> {
         self.poses.push(frame.pose);
         if n.is_multiple_of(self.stride) {
             self.sample.push((n, frame.clone()));
-            if self.sample.len() > 2 * SAMPLE_FRAMES {
+            if self.sample.len() > SAMPLE_FRAMES {
                 self.stride *= 2;
                 let stride = self.stride;
                 self.sample.retain(|(i, _)| i.is_multiple_of(stride));

@@ -33,11 +33,20 @@ struct Header {
 }
 
 pub(super) fn save(map: &Map, path: &Path) -> Result<()> {
-    let bytes = encode(map);
-    crate::atomic_file::write_atomic(path, |w| w.write_all(&bytes))
+    // Written as encoded, a brick at a time: a map's bytes are never all in memory at once
+    // (for a large map they were an eighth of a build's peak).
+    crate::atomic_file::write_atomic(path, |w| encode_into(map, w))
 }
 
+#[cfg(test)]
 fn encode(map: &Map) -> Vec<u8> {
+    let mut out = Vec::new();
+    encode_into(map, &mut out).expect("writing to memory");
+    out
+}
+
+/// Writes `map` in the file format to `out`, the checksum last.
+fn encode_into(map: &Map, out: &mut impl Write) -> std::io::Result<()> {
     let header = Header {
         engine: map.engine.clone(),
         resolution: map.resolution(),
@@ -47,29 +56,33 @@ fn encode(map: &Map) -> Vec<u8> {
         params: map.params.clone(),
     };
     let header = toml::to_string(&header).expect("header is plain data");
-    let mut out = Vec::with_capacity(64 + header.len() + map.voxels.len() * 8 + map.voxels.brick_count() * 76);
-    out.extend_from_slice(MAGIC);
-    out.extend_from_slice(&VERSION.to_le_bytes());
-    out.extend_from_slice(&(header.len() as u32).to_le_bytes());
-    out.extend_from_slice(header.as_bytes());
+    let mut crc = Crc32::default();
+    let mut buf = Vec::with_capacity(64 + header.len());
+    buf.extend_from_slice(MAGIC);
+    buf.extend_from_slice(&VERSION.to_le_bytes());
+    buf.extend_from_slice(&(header.len() as u32).to_le_bytes());
+    buf.extend_from_slice(header.as_bytes());
+    crc.update(&buf);
+    out.write_all(&buf)?;
     for key in map.voxels.sorted_brick_keys() {
         let brick = map.voxels.brick(key).expect("key from this grid");
+        buf.clear();
         for c in key.0 {
-            out.extend_from_slice(&c.to_le_bytes());
+            buf.extend_from_slice(&c.to_le_bytes());
         }
         for w in brick.mask() {
-            out.extend_from_slice(&w.to_le_bytes());
+            buf.extend_from_slice(&w.to_le_bytes());
         }
         for (_, v) in brick.iter() {
-            out.extend_from_slice(&v.occupancy.to_le_bytes());
+            buf.extend_from_slice(&v.occupancy.to_le_bytes());
             if map.has_variance {
-                out.extend_from_slice(&v.variance.to_le_bytes());
+                buf.extend_from_slice(&v.variance.to_le_bytes());
             }
         }
+        crc.update(&buf);
+        out.write_all(&buf)?;
     }
-    let crc = crc32(&out);
-    out.extend_from_slice(&crc.to_le_bytes());
-    out
+    out.write_all(&crc.finish().to_le_bytes())
 }
 
 pub(super) fn load(path: &Path) -> Result<Map> {
@@ -188,8 +201,23 @@ fn memory_needed(mut r: Reader, bricks: u64, bytes_per_voxel: usize) -> f64 {
     counted as f64 * brick as f64 + layers as f64 * 64.0 * std::mem::size_of::<MapVoxel>() as f64
 }
 
-/// CRC-32 (IEEE 802.3, as zlib and PNG), bytewise with a table built at compile time.
+/// CRC-32 (IEEE 802.3, as zlib and PNG) of `data`.
 fn crc32(data: &[u8]) -> u32 {
+    let mut crc = Crc32::default();
+    crc.update(data);
+    crc.finish()
+}
+
+/// A running CRC-32, bytewise with a table built at compile time.
+struct Crc32(u32);
+
+impl Default for Crc32 {
+    fn default() -> Self {
+        Crc32(!0)
+    }
+}
+
+impl Crc32 {
     const TABLE: [u32; 256] = {
         let mut t = [0u32; 256];
         let mut i = 0;
@@ -205,11 +233,16 @@ fn crc32(data: &[u8]) -> u32 {
         }
         t
     };
-    let mut c = !0u32;
-    for &b in data {
-        c = TABLE[((c ^ b as u32) & 0xFF) as usize] ^ (c >> 8);
+
+    fn update(&mut self, data: &[u8]) {
+        for &b in data {
+            self.0 = Self::TABLE[((self.0 ^ b as u32) & 0xFF) as usize] ^ (self.0 >> 8);
+        }
     }
-    !c
+
+    fn finish(&self) -> u32 {
+        !self.0
+    }
 }
 
 #[cfg(test)]

@@ -11,6 +11,7 @@
 
 use std::collections::BTreeMap;
 use std::ops::ControlFlow;
+use std::path::Path;
 use std::sync::Arc;
 
 use super::{Bag, BagOptions, Encoding, insert_tf, msgs, sibling_camera_info, tf};
@@ -256,15 +257,43 @@ fn image_decoder(bag: &Bag, topic: &str, msgtype: &str) -> Result<msgs::DecodeIm
     }
 }
 
-/// Calls `visit` with each posed depth frame of `options.depth_topic`, in one pass over the
-/// bag: frame `i` is the `i`-th posed image in stamp order (up to [`JITTER`]), with the
-/// intrinsics of the first `CameraInfo` on the camera-info topic. Stops early when `visit`
-/// breaks. Memory holds a few images (see the module docs), whatever the bag's size.
-pub fn for_each_frame(
+/// A posed depth image, not decoded yet: what the pass over the bag hands on, so that
+/// decoding can run on another thread than reading ([`DepthStream`]).
+struct PosedImage {
+    index: usize,
+    stamp: f64,
+    pose: Pose,
+    camera: Camera,
+    /// Its number on the topic (from 1), for errors.
+    n: usize,
+    image: Image,
+}
+
+impl PosedImage {
+    /// The frame: the image decoded (errors name `bag`'s file and `topic`).
+    fn decode(self, bag: &Path, topic: &str, noise: Option<Arc<NoiseModel>>) -> Result<Frame> {
+        let bad = |m: String| Error::file(bag, format!("{topic}: image {}: {m}", self.n));
+        let (_, depth) = (self.image.decode)(&self.image.data, self.image.encoding).map_err(bad)?;
+        let camera = self.camera;
+        if (depth.width(), depth.height()) != (camera.width, camera.height) {
+            return Err(bad(format!(
+                "{}x{} but its camera info says {}x{}",
+                depth.width(),
+                depth.height(),
+                camera.width,
+                camera.height
+            )));
+        }
+        Ok(Frame { index: self.index, timestamp: self.stamp, depth, pose: self.pose, camera, noise })
+    }
+}
+
+/// Calls `visit` with each posed depth image of `options.depth_topic` (see
+/// [`for_each_frame`]), undecoded.
+fn for_each_posed_image(
     bag: &Bag,
     options: &BagOptions,
-    noise: Option<NoiseModel>,
-    mut visit: impl FnMut(Frame) -> Result<ControlFlow<()>>,
+    mut visit: impl FnMut(PosedImage) -> Result<ControlFlow<()>>,
 ) -> Result<StreamReport> {
     let bad = |m: String| Error::file(&bag.path, m);
     let topic = options.depth_topic.as_str();
@@ -273,9 +302,8 @@ pub fn for_each_frame(
     let mut topics = posing.poses.topics();
     topics.extend([info_topic.clone(), topic.to_string()]);
     let topics: Vec<&str> = topics.iter().map(String::as_str).collect();
-    let noise = noise.map(Arc::new);
     let (mut camera, mut images, mut frames, mut last_stamp) = (None::<Camera>, 0, 0, f64::NEG_INFINITY);
-    // A released image, decoded and handed on.
+    // A released image, handed on.
     let mut emit = |camera: Option<Camera>, w: Waiting<Image>, pose: Pose| -> Result<ControlFlow<()>> {
         let Some(camera) = camera else {
             return Err(bad(format!(
@@ -283,21 +311,8 @@ pub fn for_each_frame(
                 w.n
             )));
         };
-        let (_, depth) =
-            (w.item.decode)(&w.item.data, w.item.encoding).map_err(|m| bad(format!("{topic}: image {}: {m}", w.n)))?;
-        if (depth.width(), depth.height()) != (camera.width, camera.height) {
-            return Err(bad(format!(
-                "{topic}: image {} is {}x{} but its camera info says {}x{}",
-                w.n,
-                depth.width(),
-                depth.height(),
-                camera.width,
-                camera.height
-            )));
-        }
-        let frame = Frame { index: frames, timestamp: w.stamp, depth, pose, camera, noise: noise.clone() };
         frames += 1;
-        visit(frame)
+        visit(PosedImage { index: frames - 1, stamp: w.stamp, pose, camera, n: w.n, image: w.item })
     };
     let mut stopped = false;
     let read = bag.for_each(&topics, |t, msgtype, _, data, encoding| {
@@ -342,39 +357,73 @@ pub fn for_each_frame(
     Ok(StreamReport { frames, skipped: posing.skipped })
 }
 
-/// What [`DepthStream`]'s reading thread sends.
-enum Streamed {
-    Frame(Frame),
-    Done(StreamReport),
+/// Calls `visit` with each posed depth frame of `options.depth_topic`, in one pass over the
+/// bag: frame `i` is the `i`-th posed image in stamp order (up to [`JITTER`]), with the
+/// intrinsics of the first `CameraInfo` on the camera-info topic. Stops early when `visit`
+/// breaks. Memory holds a few images (see the module docs), whatever the bag's size.
+pub fn for_each_frame(
+    bag: &Bag,
+    options: &BagOptions,
+    noise: Option<NoiseModel>,
+    mut visit: impl FnMut(Frame) -> Result<ControlFlow<()>>,
+) -> Result<StreamReport> {
+    let noise = noise.map(Arc::new);
+    for_each_posed_image(bag, options, |image| visit(image.decode(&bag.path, &options.depth_topic, noise.clone())?))
 }
 
-/// The posed depth frames of a bag ([`for_each_frame`]) as an iterator, read and decoded on a
-/// thread of their own while the caller works on the last ones (at most two wait).
+/// The posed depth frames of a bag ([`for_each_frame`]) as an iterator, in three stages that
+/// overlap: a thread reads the bag and poses the images, a second decodes them, and the
+/// caller works on the last ones (a few wait between stages).
 pub struct DepthStream {
-    frames: std::sync::mpsc::IntoIter<Result<Streamed>>,
-    report: Option<StreamReport>,
+    frames: std::sync::mpsc::IntoIter<Result<Frame>>,
+    report: std::sync::mpsc::Receiver<Result<StreamReport>>,
+    done: Option<StreamReport>,
 }
 
 impl DepthStream {
     /// Starts reading `bag`.
     pub fn new(bag: Bag, options: BagOptions, noise: Option<NoiseModel>) -> Self {
-        let (send, receive) = std::sync::mpsc::sync_channel(2);
+        let (send_image, receive_image) = std::sync::mpsc::sync_channel::<PosedImage>(4);
+        let (send_frame, receive_frame) = std::sync::mpsc::sync_channel(2);
+        let (send_report, report) = std::sync::mpsc::channel();
+        let (path, topic) = (bag.path.clone(), options.depth_topic.clone());
+        let errors = send_frame.clone();
         std::thread::spawn(move || {
-            let result = for_each_frame(&bag, &options, noise, |frame| {
+            let result = for_each_posed_image(&bag, &options, |image| {
                 // A closed channel: the caller has stopped reading.
-                Ok(match send.send(Ok(Streamed::Frame(frame))) {
+                Ok(match send_image.send(image) {
                     Ok(()) => ControlFlow::Continue(()),
                     Err(_) => ControlFlow::Break(()),
                 })
             });
-            let _ = send.send(result.map(Streamed::Done));
+            // (Images first: the decoder ends when the reader has, then the caller sees the error.)
+            drop(send_image);
+            match result {
+                Ok(r) => {
+                    let _ = send_report.send(Ok(r));
+                }
+                Err(e) => {
+                    let _ = errors.send(Err(e));
+                }
+            }
         });
-        DepthStream { frames: receive.into_iter(), report: None }
+        let noise = noise.map(Arc::new);
+        std::thread::spawn(move || {
+            for image in receive_image {
+                if send_frame.send(image.decode(&path, &topic, noise.clone())).is_err() {
+                    return;
+                }
+            }
+        });
+        DepthStream { frames: receive_frame.into_iter(), report, done: None }
     }
 
-    /// What the pass found, once the iterator has ended.
-    pub fn report(&self) -> Option<&StreamReport> {
-        self.report.as_ref()
+    /// What the pass found, once the iterator has ended (`None` if it ended in an error).
+    pub fn report(&mut self) -> Option<&StreamReport> {
+        if self.done.is_none() {
+            self.done = self.report.try_recv().ok().and_then(|r| r.ok());
+        }
+        self.done.as_ref()
     }
 }
 
@@ -382,14 +431,7 @@ impl Iterator for DepthStream {
     type Item = Result<Frame>;
 
     fn next(&mut self) -> Option<Result<Frame>> {
-        match self.frames.next()? {
-            Ok(Streamed::Frame(frame)) => Some(Ok(frame)),
-            Ok(Streamed::Done(report)) => {
-                self.report = Some(report);
-                None
-            }
-            Err(e) => Some(Err(e)),
-        }
+        self.frames.next()
     }
 }
 

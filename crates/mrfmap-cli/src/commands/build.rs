@@ -758,7 +758,7 @@ pub fn build_map_with<R: Reading>(
     })?;
     bar.finish_and_clear();
     integrate_time += t.elapsed();
-    Ok(BuildReport { map: engine.map(), frames, integrate_time })
+    Ok(BuildReport { map: engine.into_map(), frames, integrate_time })
 }
 
 /// Feeds frames as they come (`count` of them, if known) to an MRF engine in order on its

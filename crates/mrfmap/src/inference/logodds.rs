@@ -285,8 +285,22 @@ impl Engine for LogOddsEngine {
     }
 
     fn map(&self) -> Map {
-        let mut map = Map::new(self.name(), self.grid.resolution()).expect("valid resolution");
+        let mut map = self.map_params();
         map.voxels = self.grid.map(|l| map_voxel(*l));
+        map
+    }
+
+    fn into_map(self: Box<Self>) -> Map {
+        let mut map = self.map_params();
+        map.voxels = self.grid.into_map(|l| map_voxel(*l));
+        map
+    }
+}
+
+impl LogOddsEngine {
+    /// An empty map with this engine's name, resolution and parameters.
+    fn map_params(&self) -> Map {
+        let mut map = Map::new(self.name(), self.grid.resolution()).expect("valid resolution");
         let p = self.params;
         let mut params = vec![("clamp_min", p.clamp_min), ("clamp_max", p.clamp_max)];
         match p.model {

@@ -80,6 +80,12 @@ pub trait Engine: Send + Sync {
     }
     /// The current map: occupancy (and variance where the engine has one) per voxel.
     fn map(&self) -> Map;
+    /// [`Engine::map`], giving up the engine: its memory goes as the map's comes (log-odds
+    /// frees each brick once it is copied, so the peak is about the map, not the map and the
+    /// engine).
+    fn into_map(self: Box<Self>) -> Map {
+        self.map()
+    }
     /// One voxel of [`Engine::map`], read from the live state without building the map
     /// (what queries on a running engine use); `None` where the map would have no voxel.
     fn voxel(&self, key: VoxelKey) -> Option<MapVoxel>;

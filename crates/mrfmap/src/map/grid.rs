@@ -344,6 +344,21 @@ impl<V: Copy + Default> Brick<V> {
         mask_slots(&self.mask).map(move |s| (s, &self.values[self.at(s)]))
     }
 
+    /// The same slots with every allocated value mapped through `f` (layer by layer).
+    pub fn map<W: Copy + Default>(&self, mut f: impl FnMut(&V) -> W) -> Brick<W> {
+        let mut values = vec![W::default(); self.values.len()];
+        for (w, &bits) in self.mask.iter().enumerate().filter(|(_, bits)| **bits != 0) {
+            let base = self.layer[w] as usize * LAYER;
+            let mut left = bits;
+            while left != 0 {
+                let at = base + left.trailing_zeros() as usize;
+                values[at] = f(&self.values[at]);
+                left &= left - 1;
+            }
+        }
+        Brick { mask: self.mask, layer: self.layer, values }
+    }
+
     /// Heap bytes of the values (what the brick holds beyond its own size).
     pub fn heap_bytes(&self) -> usize {
         self.values.capacity() * std::mem::size_of::<V>()
@@ -525,12 +540,16 @@ impl<V: Copy + Default> Grid<V> {
     pub fn map<W: Copy + Default>(&self, mut f: impl FnMut(&V) -> W) -> Grid<W> {
         let mut out = Grid { resolution: self.resolution, bricks: FxHashMap::default() };
         out.bricks.reserve(self.bricks.len());
-        for (k, b) in &self.bricks {
-            let nb = out.brick_or_insert(*k);
-            for (s, v) in b.iter() {
-                nb.get_or_insert(s, f(v));
-            }
-        }
+        out.bricks.extend(self.bricks.iter().map(|(k, b)| (*k, b.map(&mut f))));
+        out
+    }
+
+    /// [`Grid::map`], giving up this grid: each brick's values are freed once mapped, so
+    /// the two grids are not both whole at once.
+    pub fn into_map<W: Copy + Default>(self, mut f: impl FnMut(&V) -> W) -> Grid<W> {
+        let mut out = Grid { resolution: self.resolution, bricks: FxHashMap::default() };
+        out.bricks.reserve(self.bricks.len());
+        out.bricks.extend(self.bricks.into_iter().map(|(k, b)| (k, b.map(&mut f))));
         out
     }
 }
@@ -658,5 +677,11 @@ mod tests {
         assert_eq!((dense[7 * 64 + 5], dense[2 * 64 + 9], dense[100]), (102, 5, 100));
         brick.dense_mut().unwrap()[100] = 7;
         assert_eq!(brick.get(100), Some(&7));
+        // Mapped, given up or not, the same voxels with the mapped values.
+        let doubled = grid.map(|v| 2.0 * v);
+        let given_up = grid.clone().into_map(|v| 2.0 * v);
+        assert_eq!((doubled.len(), given_up.len()), (grid.len(), grid.len()));
+        assert!(grid.iter().all(|(k, v)| doubled.get(k) == Some(&(2.0 * v)) && given_up.get(k) == Some(&(2.0 * v))));
+        assert_eq!(given_up.memory_bytes(), doubled.memory_bytes());
     }
 }

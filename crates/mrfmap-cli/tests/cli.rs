@@ -1286,6 +1286,11 @@ fn ros2_bags_build_the_same_map_as_the_dataset() {
         assert!(run(&["export", s(&m), "--grid2d", s(&yaml)]).status.success());
         check_square_room(&yaml, &format!("{engine} from {source}"));
     }
+    // Scans are held until the build: more than the memory limit allows is refused.
+    let mut args = vec!["--max-memory", "20K", "build", s(&scans), "-o", s(&m), "--resolution", "0.05"];
+    args.extend(["--scan-topic", "/scan", "--fixed-frame", "map"]);
+    let o = run(&args);
+    assert!(!o.status.success() && stderr(&o).contains("scans: holding 3 scans of /scan"), "{}", stderr(&o));
     // What goes wrong says which topic and what.
     let o = build(&direct, &m, &[depth[0], depth[1], "--fixed-frame", "map", "--camera-info-topic", "/nope"]);
     assert!(!o.status.success() && stderr(&o).contains("no CameraInfo on /nope"), "{}", stderr(&o));

@@ -472,9 +472,18 @@ pub fn bag_scans(
     topics.push(topic.to_string());
     let topics: Vec<&str> = topics.iter().map(String::as_str).collect();
     let noise = noise.map(Arc::new);
-    let (mut scans, mut n) = (Vec::new(), 0);
+    let (mut scans, mut n, mut held) = (Vec::new(), 0, 0.0);
     let mut emit = |w: Waiting<Beams>, pose: Pose| -> Result<ControlFlow<()>> {
         let (beams, max_range) = w.item;
+        // Scans are held until the build (a lidar's clouds are megabytes each): stop before
+        // they outgrow the memory limit.
+        held += (beams.len() * std::mem::size_of::<Beam>() + std::mem::size_of::<RangeScan>()) as f64;
+        crate::limits::check_memory(
+            &format!("holding {} scans of {topic}", scans.len() + 1),
+            held,
+            "map part of the recording (split the bag)",
+        )
+        .map_err(|e| bad(e.to_string()))?;
         let scan = RangeScan::new(scans.len(), pose, beams, max_range, noise.clone())
             .map_err(|e| bad(format!("{topic}: scan {}: {e}", w.n)))?;
         scans.push(scan);

@@ -488,9 +488,12 @@ pub const BASE_MEMORY: f64 = 12.0 * 1048576.0;
 /// and the finished map's copy, each a mask, a layer table and a hash table entry.
 const LOGODDS_BRICK: f64 = 512.0;
 /// Bytes per layer of 64 voxels of a log-odds map: 4 bytes per voxel in the engine's grid, 8
-/// in the finished map's copy, and room for the layers' vectors to grow (a dense brick
-/// measured 8 KiB in all).
-const LOGODDS_LAYER: f64 = 1024.0;
+/// in the finished map's copy, and room for the layers' vectors to grow. The engine's layers
+/// are freed as the map's are made ([`crate::inference::Engine::into_map`]), so the heap
+/// peaks below the sum (the `memory_estimate` test: 1.6-1.8x under this price), but the
+/// allocator keeps most of what they held, so the resident size does not (0.9-1.0x on
+/// coffin-world and intel-lab).
+const LOGODDS_LAYER: f64 = 896.0;
 /// Bytes per brick of a CRM map besides its voxels and the map's layers: the slot table
 /// (1 KiB) and the finished map's brick.
 const CRM_BRICK: f64 = 1280.0;

@@ -87,8 +87,10 @@ class Mapper:
         or ``compressedDepth``), each posed in ``fixed_frame`` from ``/tf`` and ``/tf_static``
         or by ``pose_topic`` (``PoseStamped`` / ``Odometry``) at its stamp. Images without a pose
         within ``max_pose_gap`` s are skipped. The bag's CameraInfo (default: ``camera_info``
-        beside the depth topic) must match this mapper's camera. Returns the images added;
-        ``ValueError`` or ``OSError`` naming the bag and topic otherwise."""
+        beside the depth topic) must match this mapper's camera. The bag is read once, each
+        image added as soon as its pose is known: memory holds a few images whatever the bag's
+        size. Returns the images added; ``ValueError`` or ``OSError`` naming the bag and topic
+        otherwise (images added before an error stay)."""
     def remove_keyframe(self, id: int) -> None:
         """MRF only: removes a keyframe; after ``run`` the map is as if it was never added."""
     def set_pose(self, id: int, pose: npt.NDArray[np.float64]) -> None:

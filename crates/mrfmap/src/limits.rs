@@ -53,6 +53,20 @@ pub fn physical_memory() -> Option<u64> {
     Some(kib * 1024)
 }
 
+/// This process's resident memory from `/proc/self/status` (Linux), if readable: what a
+/// stream of unknown length checks as it goes, where no estimate can be made up front.
+///
+/// ```
+/// # #[cfg(target_os = "linux")]
+/// assert!(mrfmap::limits::resident_memory().unwrap() > 0);
+/// ```
+pub fn resident_memory() -> Option<u64> {
+    let text = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = text.lines().find(|l| l.starts_with("VmRSS:"))?;
+    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib * 1024)
+}
+
 /// Parses `8G`, `512M`, `1.5GiB`, `1000000` (bytes) and the like (K, M, G, T: powers of 1024).
 ///
 /// ```

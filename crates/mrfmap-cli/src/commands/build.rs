@@ -413,8 +413,8 @@ fn posed(path: &std::path::Path, topic: &str, count: usize, skipped: &[String]) 
 
 /// The memory check of a streamed build: the map's estimate from the poses so far and a few
 /// frames spread over them, checked each time the number of frames doubles (a recording's
-/// length is known only at its end). The map only grows, so a build that cannot fit is
-/// stopped while its map is at most twice what fits, not after it has outgrown the machine.
+/// length is known only at its end), and the resident size at every frame (between two
+/// estimates the map may double).
 #[cfg(feature = "bags")]
 struct Growth<'a> {
     config: &'a EngineConfig,
@@ -440,6 +440,17 @@ impl<'a> Growth<'a> {
                 let stride = self.stride;
                 self.sample.retain(|(i, _)| i.is_multiple_of(stride));
             }
+        }
+        // Between estimates the map may double: the resident size is checked at every frame.
+        let limit = mrfmap::limits::max_memory();
+        if let Some(resident) = mrfmap::limits::resident_memory().filter(|&r| r > limit) {
+            return Err(mrfmap::Error::Invalid(format!(
+                "the map outgrew the memory limit after {} frames ({} resident, limit {}; {BUILD_ADVICE}, or raise \
+                 the limit with --max-memory / MRFMAP_MAX_MEMORY)",
+                n + 1,
+                mrfmap::limits::human(resident as f64),
+                mrfmap::limits::human(limit as f64)
+            )));
         }
         if !(n + 1).is_power_of_two() {
             return Ok(());

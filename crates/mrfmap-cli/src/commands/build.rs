@@ -420,7 +420,7 @@ struct Growth<'a> {
     config: &'a EngineConfig,
     poses: Vec<mrfmap::frames::Pose>,
     /// Every `stride`-th frame, at most `SAMPLE_FRAMES` of them (the stride doubles).
-    sample: Vec<(usize, Frame)>,
+    sample: Vec<Frame>,
     stride: usize,
 }
 
@@ -434,11 +434,15 @@ impl<'a> Growth<'a> {
         let n = self.poses.len();
         self.poses.push(frame.pose);
         if n.is_multiple_of(self.stride) {
-            self.sample.push((n, frame.clone()));
+            self.sample.push(frame.clone());
             if self.sample.len() > SAMPLE_FRAMES {
+                // Frames 0, s, 2s, ... are kept: those at even places are the multiples of 2s.
                 self.stride *= 2;
-                let stride = self.stride;
-                self.sample.retain(|(i, _)| i.is_multiple_of(stride));
+                let mut place = 0;
+                self.sample.retain(|_| {
+                    place += 1;
+                    place % 2 == 1
+                });
             }
         }
         // Between estimates the map may double: the resident size is checked at every frame.
@@ -455,8 +459,7 @@ impl<'a> Growth<'a> {
         if !(n + 1).is_power_of_two() {
             return Ok(());
         }
-        let sampled: Vec<Frame> = self.sample.iter().map(|(_, f)| f.clone()).collect();
-        check_build(self.config, frames_extent(self.poses.iter().copied(), &sampled, self.config), BUILD_ADVICE)
+        check_build(self.config, frames_extent(self.poses.iter().copied(), &self.sample, self.config), BUILD_ADVICE)
     }
 }
 

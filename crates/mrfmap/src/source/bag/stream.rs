@@ -186,10 +186,15 @@ impl<T> Posing<T> {
             let crowded = self.waiting.len() > WINDOW;
             let Some(entry) = self.waiting.first_entry() else { break };
             let (order, w) = (*entry.key(), entry.get());
+            // (The pose is looked up only once the message could go: not on every message
+            // that arrives while it waits for its followers.)
+            let may_go = ready && self.arrived - order.1 > JITTER; // (JITTER arrived after it)
+            if !(end || crowded || may_go) {
+                break;
+            }
             let pose = self.poses.lookup(&w.frame_id, w.stamp, self.max_gap);
             let settled = pose.is_ok() || self.poses.known_until().is_some_and(|known| known > w.stamp + self.max_gap);
-            let after = self.arrived - order.1 - 1;
-            if !(end || crowded || ready && settled && after >= JITTER) {
+            if !(end || crowded || settled) {
                 break;
             }
             let w = entry.remove();

@@ -19,6 +19,7 @@ mod estimate;
 mod logodds;
 mod merge;
 mod mrf;
+mod tiles;
 mod vecmath;
 
 use std::fmt;
@@ -28,6 +29,7 @@ pub use crm::{CrmEngine, CrmParams, crm_ray_factors};
 pub use estimate::{BASE_MEMORY, Extent, check_build, estimate_memory, frames_extent, scan_extent};
 pub use logodds::{LogOddsEngine, LogOddsParams, Marking, SensorModel};
 pub use merge::merge;
+pub use tiles::{TileBuild, Tiling, default_margin};
 pub use mrf::{
     Allocation, Budget, DEFAULT_MAX_SWEEPS, DEFAULT_MIN_EVIDENCE, DEFAULT_SWEEPS, DEFAULT_TOLERANCE, KeyframeId,
     KeyframeSelection, MAX_BATCH, MAX_LOG_ODDS, MU_EPS, MrfEngine, MrfParams, RunReport, StepReport, TILE,

@@ -423,6 +423,28 @@ impl<V: Copy + Default> Grid<V> {
         had
     }
 
+    /// Moves every voxel of `other` into this grid (same resolution): its bricks as they are
+    /// where this grid has none, voxel by voxel (`other`'s value winning) where both do.
+    pub fn absorb(&mut self, other: Grid<V>) {
+        for (key, brick) in other.bricks {
+            match self.bricks.entry(key) {
+                std::collections::hash_map::Entry::Vacant(slot) => {
+                    slot.insert(brick);
+                }
+                std::collections::hash_map::Entry::Occupied(mut mine) => {
+                    for (slot, v) in brick.iter() {
+                        *mine.get_mut().get_or_insert(slot, *v) = *v;
+                    }
+                }
+            }
+        }
+    }
+
+    /// Keeps the bricks for which `keep` is true.
+    pub fn retain_bricks(&mut self, mut keep: impl FnMut(BrickKey) -> bool) {
+        self.bricks.retain(|k, _| keep(*k));
+    }
+
     /// Drops whole bricks (absent ones are ignored).
     pub fn remove_bricks(&mut self, keys: &[BrickKey]) {
         for k in keys {

@@ -10,6 +10,7 @@ mod file;
 mod grid;
 mod ops;
 mod region;
+mod tiled;
 
 pub use grid::{
     BRICK_EDGE, BRICK_VOXELS, Brick, BrickKey, BrickList, Grid, SlotMask, VoxelKey, check_resolution, floor_i32,
@@ -18,6 +19,7 @@ pub use grid::{
 
 pub use ops::{Change, Grid2d, MAX_GRID2D_CELLS, VoxelState};
 pub use region::{Aabb, box_keys};
+pub use tiled::{INDEX_FILE, TileEntry, TileGrid, TileIndex, TileKey, TiledMap};
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -100,7 +102,11 @@ impl Map {
     }
 
     /// Loads a map saved by [`Map::save`]; corrupt, truncated or foreign files give a clear error.
+    /// A tiled map's folder ([`TiledMap`]) is read whole, every tile stitched into one map.
     pub fn load(path: &Path) -> crate::Result<Self> {
+        if TiledMap::is_tiled(path) {
+            return TiledMap::open(path)?.load_all();
+        }
         file::load(path)
     }
 

@@ -189,6 +189,48 @@ impl<'a> FrameRays<'a> {
     }
 }
 
+/// A box that every ray of `frame` stays inside within `limits`: the camera and each valid
+/// pixel's segment end (the forward-model engines' segments, 3 std past the surface, when
+/// `forward_model` is true; the frame's noise model or the default), or `None` when no pixel
+/// has a segment. Rays are straight lines from the camera, so a box holding the camera and
+/// every end holds every ray: what decides which tiles of a tiled map a frame can touch.
+pub fn frame_reach(frame: &Frame, limits: &RayLimits, forward_model: bool) -> Option<Aabb> {
+    let default_noise;
+    let noise = match &frame.noise {
+        Some(n) => n.as_ref(),
+        None => {
+            default_noise = crate::frames::default_noise_model();
+            &default_noise
+        }
+    };
+    let rays = FrameRays::new(frame);
+    let (_, origin) = pose_parts(&frame.pose);
+    let empty = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+    let (lo, hi) = (0..rays.rows())
+        .into_par_iter()
+        .map(|v| {
+            let mut acc = empty;
+            for ray in rays.row(v) {
+                let seg = if forward_model { limits.forward_model_segment(&ray, noise) } else { limits.segment(&ray, 0.0) };
+                let Some(seg) = seg else { continue };
+                for a in 0..3 {
+                    let end = ray.origin[a] + seg.end * ray.dir[a];
+                    acc.0[a] = acc.0[a].min(end);
+                    acc.1[a] = acc.1[a].max(end);
+                }
+            }
+            acc
+        })
+        .reduce(|| empty, |a, b| ([0, 1, 2].map(|k| a.0[k].min(b.0[k])), [0, 1, 2].map(|k| a.1[k].max(b.1[k]))));
+    if !lo[0].is_finite() {
+        return None;
+    }
+    let lo = [0, 1, 2].map(|a| lo[a].min(origin[a]));
+    let hi = [0, 1, 2].map(|a| hi[a].max(origin[a]));
+    // A flat reach (a ray along an axis) still needs a box of positive volume.
+    Aabb::new(lo, [0, 1, 2].map(|a| if hi[a] > lo[a] { hi[a] } else { lo[a] + 1e-9_f64.max(lo[a].abs() * 1e-12) })).ok()
+}
+
 /// Ray generator for a range scan: beams in order, in rows of [`ScanRays::ROW`] beams (the
 /// unit of parallel work).
 pub struct ScanRays<'a> {

@@ -1,0 +1,233 @@
+//! Building a map in tiles ([`crate::map::TiledMap`]): each tile is built from the frames that
+//! can reach it, alone, with the map's bounds at the tile (plus a margin), and cut to the tile.
+//! Tiles are independent, so they can be built one after another in a small process, or on
+//! many machines at once (the Python package's `mrfmap.distributed`).
+//!
+//! - [`Tiling::plan`] reads each frame once and lists, per tile, the frames whose rays can
+//!   reach it ([`frame_reach`]: the box of the camera and every ray's end).
+//! - [`Tiling::build`] builds one tile: the engine with its bounds at the tile's box grown by
+//!   the margin (and within the user's bounds), the tile's frames in order, then only the
+//!   tile's bricks kept.
+//!
+//! **Log-odds tiles are exact** (the union of the tiles is the map built in one process,
+//! voxel for voxel): a voxel's log-odds is the sum, in frame order, of the updates of the rays
+//! that cross it or end in it, and every such ray belongs to a frame the tile gets and is
+//! traced through the tile whole (bounds cut rays only in the margin, a brick away from the
+//! tile's voxels, and cut rays keep the voxels they cross inside). MRF and CRM tiles are
+//! approximations at their borders: a ray cut at the margin loses the voxels before it (CRM's
+//! update along a ray reads them) and joint inference across the border (the MRF) is cut; the
+//! margin moves that error away from the tile's voxels.
+
+use std::collections::BTreeMap;
+
+use super::{EngineConfig, EngineKind, new_engine};
+use crate::error::{Error, Result};
+use crate::frames::Frame;
+use crate::map::{Aabb, BRICK_EDGE, Map, TileGrid, TileKey};
+use crate::rays::frame_reach;
+
+/// Most tiles one frame may reach (a frame reaching more is an error: the tiles are far too
+/// small for the sensor's range).
+const MAX_TILES_PER_FRAME: usize = 1 << 16;
+
+/// The margin a tile is built with by default: a brick for log-odds (enough for exactness),
+/// a metre (at least a brick) for MRF and CRM, whose rays carry information along their
+/// length (RESULTS.md measures what it changes).
+pub fn default_margin(kind: EngineKind, resolution: f64) -> f64 {
+    let brick = BRICK_EDGE as f64 * resolution;
+    match kind {
+        EngineKind::LogOdds => brick,
+        EngineKind::Mrf | EngineKind::Crm => brick.max(1.0),
+    }
+}
+
+/// How a map is cut into tiles and how much space around each tile its build sees.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Tiling {
+    /// The tiles.
+    pub grid: TileGrid,
+    /// Metres around a tile that its build maps too (then cut away).
+    pub margin: f64,
+}
+
+/// One tile, built.
+#[derive(Debug)]
+pub struct TileBuild {
+    /// The tile's voxels.
+    pub map: Map,
+    /// Frames integrated.
+    pub frames: usize,
+}
+
+impl Tiling {
+    /// Tiles of `edge` metres for maps at `config`'s resolution, built with `margin` metres
+    /// around them (default [`default_margin`]). Log-odds needs at least a brick of margin to
+    /// stay exact.
+    pub fn new(config: &EngineConfig, edge: f64, margin: Option<f64>) -> Result<Self> {
+        let grid = TileGrid::new(edge, config.resolution)?;
+        let margin = margin.unwrap_or_else(|| default_margin(config.kind, config.resolution));
+        let brick = BRICK_EDGE as f64 * config.resolution;
+        if !(margin.is_finite() && margin >= 0.0) {
+            return Err(Error::Invalid(format!("the tile margin must be 0 or more metres, got {margin}")));
+        }
+        if config.kind == EngineKind::LogOdds && margin < brick {
+            return Err(Error::Invalid(format!(
+                "log-odds tiles need a margin of at least a brick ({brick} m) to equal the map built whole, got \
+                 {margin}"
+            )));
+        }
+        Ok(Tiling { grid, margin })
+    }
+
+    /// The box tile `key` is built in: its own grown by the margin, within the map's bounds
+    /// (`None` when the bounds leave nothing of the tile).
+    pub fn build_box(&self, config: &EngineConfig, key: TileKey) -> Option<Aabb> {
+        let tile = self.grid.bounds(key);
+        if let Some(b) = &config.limits.bounds
+            && (0..3).any(|a| b.max[a] <= tile.min[a] || b.min[a] >= tile.max[a])
+        {
+            return None;
+        }
+        let mut grown = Aabb { min: tile.min.map(|x| x - self.margin), max: tile.max.map(|x| x + self.margin) };
+        if let Some(b) = &config.limits.bounds {
+            grown.min = [0, 1, 2].map(|a| grown.min[a].max(b.min[a]));
+            grown.max = [0, 1, 2].map(|a| grown.max[a].min(b.max[a]));
+        }
+        Some(grown)
+    }
+
+    /// The configuration tile `key` is built with: `config` with the bounds at its build box.
+    pub fn tile_config(&self, config: &EngineConfig, key: TileKey) -> Option<EngineConfig> {
+        let bounds = self.build_box(config, key)?;
+        let mut tile = *config;
+        tile.limits.bounds = Some(bounds);
+        Some(tile)
+    }
+
+    /// The tiles whose build box a frame reaching `reach` can touch.
+    pub fn tiles_reached(&self, config: &EngineConfig, reach: &Aabb) -> Result<Vec<TileKey>> {
+        // A voxel more than the margin: a ray touching a face of the box still counts.
+        let pad = self.margin + self.grid.resolution();
+        let grown = Aabb { min: reach.min.map(|x| x - pad), max: reach.max.map(|x| x + pad) };
+        let keys = self.grid.overlapping(&grown, MAX_TILES_PER_FRAME).map_err(|e| {
+            Error::Invalid(format!("{e}: one frame reaches that many tiles; use larger tiles or a --max-range"))
+        })?;
+        Ok(keys.into_iter().filter(|k| self.build_box(config, *k).is_some()).collect())
+    }
+
+    /// Which frames reach which tile: each frame of `frames` (with its index) read once.
+    /// Frames without a valid pixel reach nothing.
+    pub fn plan(
+        &self,
+        config: &EngineConfig,
+        frames: impl Iterator<Item = Result<(usize, Frame)>>,
+    ) -> Result<BTreeMap<TileKey, Vec<usize>>> {
+        let mut plan: BTreeMap<TileKey, Vec<usize>> = BTreeMap::new();
+        let forward_model = config.kind != EngineKind::LogOdds;
+        for frame in frames {
+            let (index, frame) = frame?;
+            let Some(reach) = frame_reach(&frame, &config.limits, forward_model) else { continue };
+            for key in self.tiles_reached(config, &reach)? {
+                plan.entry(key).or_default().push(index);
+            }
+        }
+        Ok(plan)
+    }
+
+    /// Builds tile `key` from `frames` (its frames, in order): the engine bounded to the
+    /// tile's build box, then cut to the tile.
+    pub fn build(
+        &self,
+        config: &EngineConfig,
+        key: TileKey,
+        frames: impl Iterator<Item = Result<Frame>>,
+    ) -> Result<TileBuild> {
+        let tile_config = self.tile_config(config, key).ok_or_else(|| {
+            Error::Invalid(format!("tile {:?} lies outside the map's bounds: nothing to build", key.0))
+        })?;
+        let mut engine = new_engine(&tile_config)?;
+        let mut count = 0;
+        for frame in frames {
+            engine.integrate(&frame?)?;
+            count += 1;
+        }
+        engine.finish()?;
+        let mut map = engine.into_map();
+        map.voxels.retain_bricks(|b| self.grid.tile_of_brick(b) == key);
+        // Where the user's bounds cut the tile, voxels beyond them go too (the engine's box
+        // was grown by the margin).
+        if let Some(b) = &config.limits.bounds {
+            map = map.crop(b);
+        }
+        Ok(TileBuild { map, frames: count })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frames::{Camera, DepthImage, look_at};
+    use nalgebra::Vector3;
+
+    fn frame(index: usize, eye: [f64; 3], target: [f64; 3], depth: f32) -> Frame {
+        let camera = Camera::new(40.0, 40.0, 19.5, 14.5, 40, 30, 5000.0).unwrap();
+        let mut image = DepthImage::new(40, 30);
+        for v in 0..30 {
+            for u in 0..40 {
+                image.set(u, v, depth + 0.01 * ((u * 7 + v * 3) % 11) as f32);
+            }
+        }
+        let pose = look_at(Vector3::from(eye), Vector3::from(target)).unwrap();
+        Frame { index, timestamp: index as f64, depth: image, pose, camera, noise: None }
+    }
+
+    #[test]
+    fn log_odds_tiles_equal_the_whole_map() {
+        for marking in [crate::inference::Marking::Project, crate::inference::Marking::Walk] {
+            let mut config = EngineConfig::new(EngineKind::LogOdds, 0.1);
+            config.logodds.marking = marking;
+            tiles_equal_whole(&config);
+        }
+        // Too little margin for exactness is refused.
+        let config = EngineConfig::new(EngineKind::LogOdds, 0.1);
+        assert!(Tiling::new(&config, 1.6, Some(0.05)).unwrap_err().to_string().contains("margin"));
+    }
+
+    fn tiles_equal_whole(config: &EngineConfig) {
+        let config = *config;
+        let frames: Vec<Frame> = (0..6)
+            .map(|i| {
+                let a = i as f64 * 1.1;
+                frame(i, [0.3 * a.cos() + 0.05, 0.3 * a.sin() - 0.02, 0.4], [3.0 * a.cos(), 3.0 * a.sin(), 0.2], 2.3)
+            })
+            .collect();
+        let mut whole = new_engine(&config).unwrap();
+        for f in &frames {
+            whole.integrate(f).unwrap();
+        }
+        let whole = whole.map();
+        let tiling = Tiling::new(&config, 1.6, None).unwrap();
+        let plan = tiling.plan(&config, frames.iter().cloned().map(|f| Ok((f.index, f)))).unwrap();
+        assert!(plan.len() >= 4, "{} tiles", plan.len());
+        let mut union = Map::new("logodds", 0.1).unwrap();
+        for (key, indices) in &plan {
+            let built = tiling.build(&config, *key, indices.iter().map(|&i| Ok(frames[i].clone()))).unwrap();
+            assert!(built.map.voxels.bricks().all(|(b, _)| tiling.grid.tile_of_brick(*b) == *key));
+            union.voxels.absorb(built.map.voxels);
+        }
+        assert_eq!(union.voxels.len(), whole.voxels.len());
+        for (k, v) in whole.voxels.iter() {
+            assert_eq!(union.voxels.get(k), Some(v), "voxel {k:?}");
+        }
+    }
+
+    #[test]
+    fn bounds_cut_tiles() {
+        let mut config = EngineConfig::new(EngineKind::LogOdds, 0.1);
+        config.limits.bounds = Some(Aabb::new([0.0, 0.0, 0.0], [1.0, 1.0, 1.0]).unwrap());
+        let tiling = Tiling::new(&config, 0.8, None).unwrap();
+        assert!(tiling.build_box(&config, TileKey([5, 0, 0])).is_none());
+        let b = tiling.build_box(&config, TileKey([1, 0, 0])).unwrap();
+        assert_eq!((b.min[0], b.max[0]), (0.8 - 0.8, 1.0));
+    }
+}

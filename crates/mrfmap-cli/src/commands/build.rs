@@ -1,6 +1,7 @@
 //! `mrfmap build`: dataset or laser log in, map file out. Also the building blocks that `demo`, `loo`
 //! and `compare` share: map options, frame selection, and the integration loop.
 
+use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
@@ -11,10 +12,10 @@ use mrfmap::atomic_file::write_atomic;
 use mrfmap::frames::{Frame, NoiseModel, Poly, RangeScan};
 use mrfmap::inference::{
     Allocation, Budget, CrmParams, Engine, EngineConfig, EngineKind, Extent, KeyframeSelection, LogOddsParams, Marking,
-    MrfEngine, MrfParams, check_build, frames_extent, new_engine, scan_extent,
+    MrfEngine, MrfParams, Tiling, check_build, estimate_memory, frames_extent, new_engine, scan_extent,
 };
 use mrfmap::map::Aabb;
-use mrfmap::map::Map;
+use mrfmap::map::{Map, TileKey};
 use mrfmap::rays::RayLimits;
 #[cfg(feature = "bags")]
 use mrfmap::source::bag::{Bag, BagOptions, DepthStream, bag_frames, bag_scans, for_each_frame};
@@ -484,6 +485,15 @@ pub struct Args {
     /// Only these frame indices (default: all).
     #[arg(long, value_delimiter = ',')]
     frames: Vec<usize>,
+    /// Build a tiled map: OUTPUT is then a folder of tiles of this edge (metres; a whole
+    /// number of 8-voxel bricks) and their index, each tile built alone from the frames that
+    /// reach it, so memory holds one tile at a time (dataset folders).
+    #[arg(long, value_parser = super::positive)]
+    tile: Option<f64>,
+    /// With --tile: metres around each tile that its build maps too, then cuts away (default
+    /// 1 m for mrf and crm; 0 for logodds, whose tiles equal the map built whole anyway).
+    #[arg(long, requires = "tile", value_parser = super::non_negative)]
+    tile_margin: Option<f64>,
     #[command(flatten)]
     options: MapOptions,
     #[command(flatten)]
@@ -842,6 +852,9 @@ pub fn build_online(
 pub fn run(a: Args) -> Result<()> {
     let kind = a.engine;
     check_output_folder(&a.output)?;
+    if let Some(edge) = a.tile {
+        return build_tiled(&a, edge);
+    }
     // A map named like another format would be a .mrfmap file under a misleading name.
     let extension = a.output.extension().map(|e| e.to_string_lossy().to_lowercase());
     if let Some(ext) = extension.filter(|e| ["bt", "ot", "ply", "mcap", "png", "pgm", "yaml"].contains(&e.as_str())) {
@@ -941,3 +954,141 @@ pub fn run(a: Args) -> Result<()> {
     );
     Ok(())
 }
+
+/// `build --tile`: the dataset's frames planned onto tiles (each frame read once), every
+/// tile's memory estimate checked, then the tiles built one at a time into the folder
+/// `--output`, its index written last.
+fn build_tiled(a: &Args, edge: f64) -> Result<()> {
+    if a.online.online || a.snapshots.snapshot_every.is_some() {
+        bail!("--tile builds a map tile by tile; --online and --snapshot-every follow one map as it grows");
+    }
+    if BagArgs::is_bag(&a.dataset) || a.dataset.is_file() {
+        bail!(
+            "{}: --tile takes a dataset folder (a bag's depth images become one with `mrfmap export-dataset`)",
+            a.dataset.display()
+        );
+    }
+    if a.output.exists() && !a.output.is_dir() {
+        bail!("{}: --tile writes a folder of tiles, and this is a file", a.output.display());
+    }
+    let config = a.options.config(a.engine, a.resolution)?;
+    let tiling = Tiling::new(&config, edge, a.tile_margin)?;
+    let dataset = a.options.open(&a.dataset)?;
+    let indices = select_frames(dataset.len(), &a.frames, &a.exclude)?;
+    let bar = crate::progress::bar(Some(indices.len()), "planning");
+    let plan = tiling.plan(
+        &config,
+        indices.iter().map(|&i| {
+            bar.inc(1);
+            dataset.frame(i).map(|f| (i, f))
+        }),
+    )?;
+    bar.finish_and_clear();
+    if plan.is_empty() {
+        bail!("{}: no frame reaches any tile (no valid depth within the bounds)", a.dataset.display());
+    }
+    // Neighbouring tiles share frames: decoded ones are kept for the next tiles.
+    let mut cache = FrameCache::new(&dataset);
+    // Every tile's estimate before the first is built: a refusal comes before any work.
+    let mut largest = (0.0, TileKey([0; 3]));
+    for (key, frames) in &plan {
+        let tile_config = tiling.tile_config(&config, *key).expect("planned tiles lie within the bounds");
+        let step = frames.len().div_ceil(SAMPLE_FRAMES).max(1);
+        let sampled: Vec<Frame> =
+            frames.iter().step_by(step).map(|&i| cache.get(i).map(|f| (*f).clone())).collect::<mrfmap::Result<_>>()?;
+        let poses = frames.iter().map(|&i| dataset.frames()[i].pose);
+        if let Some(extent) = frames_extent(poses, &sampled, &tile_config) {
+            let estimate = estimate_memory(&tile_config, &extent);
+            if estimate > largest.0 {
+                largest = (estimate, *key);
+            }
+        }
+    }
+    mrfmap::limits::check_memory(
+        &format!("tile {:?}, the largest, as a {} map at {} m", largest.1.0, a.engine, a.resolution),
+        largest.0,
+        TILE_ADVICE,
+    )?;
+    let integrations: usize = plan.values().map(Vec::len).sum();
+    tracing::info!(
+        "{}: {} frames onto {} tiles of {} m ({integrations} tile-frames, margin {} m), engine {}",
+        a.dataset.display(),
+        indices.len(),
+        plan.len(),
+        tiling.grid.edge(),
+        tiling.margin,
+        a.engine
+    );
+    std::fs::create_dir_all(&a.output).with_context(|| format!("{}: cannot create the folder", a.output.display()))?;
+    let bar = crate::progress::bar(Some(plan.len()), "tiles");
+    let started = Instant::now();
+    let mut entries = Vec::with_capacity(plan.len());
+    let mut params = BTreeMap::new();
+    for (key, frames) in &plan {
+        let (entry, tile_params) = tiling
+            .build_into(&a.output, &config, *key, frames.iter().map(|&i| cache.get(i)))
+            .with_context(|| format!("tile {:?}", key.0))?;
+        if params.is_empty() {
+            params = tile_params;
+        }
+        entries.push(entry);
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let elapsed = started.elapsed();
+    params.insert("source".into(), a.dataset.display().to_string());
+    params.insert("frames".into(), format_ranges(&indices));
+    if let Some(up) = dataset.up() {
+        params.insert("up".into(), up.to_string());
+    }
+    let mut index = tiling.index(&config, params);
+    index.tiles = entries;
+    index.save(&a.output)?;
+    let (voxels, occupied): (u64, u64) = index.tiles.iter().fold((0, 0), |(v, o), t| (v + t.voxels, o + t.occupied));
+    println!(
+        "{}: {} tiles, {} frames, {voxels} voxels ({occupied} occupied), {:.1} ms/frame",
+        a.output.display(),
+        index.tiles.len(),
+        indices.len(),
+        elapsed.as_secs_f64() * 1e3 / indices.len() as f64
+    );
+    Ok(())
+}
+
+/// Decoded frames of a dataset kept for reuse, the oldest dropped first beyond a budget of
+/// memory (a tenth of the limit, at most 1 GiB).
+struct FrameCache<'a> {
+    dataset: &'a Dataset,
+    frames: std::collections::HashMap<usize, Arc<Frame>>,
+    order: std::collections::VecDeque<usize>,
+    bytes: usize,
+    budget: usize,
+}
+
+impl<'a> FrameCache<'a> {
+    fn new(dataset: &'a Dataset) -> Self {
+        let budget = (mrfmap::limits::max_memory() / 10).min(1 << 30) as usize;
+        FrameCache { dataset, frames: Default::default(), order: Default::default(), bytes: 0, budget }
+    }
+
+    fn get(&mut self, index: usize) -> mrfmap::Result<Arc<Frame>> {
+        if let Some(f) = self.frames.get(&index) {
+            return Ok(f.clone());
+        }
+        let frame = Arc::new(self.dataset.frame(index)?);
+        let size = |f: &Frame| f.depth.data().len() * std::mem::size_of::<f32>();
+        self.bytes += size(&frame);
+        self.frames.insert(index, frame.clone());
+        self.order.push_back(index);
+        while self.bytes > self.budget && self.order.len() > 1 {
+            let old = self.order.pop_front().expect("more than one");
+            if let Some(f) = self.frames.remove(&old) {
+                self.bytes -= size(&f);
+            }
+        }
+        Ok(frame)
+    }
+}
+
+/// What a tiled build refused for memory can change.
+const TILE_ADVICE: &str = "use smaller --tile, a coarser --resolution, or --max-range";

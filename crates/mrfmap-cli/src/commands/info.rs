@@ -3,11 +3,11 @@
 use std::path::PathBuf;
 
 use anyhow::Result;
-use mrfmap::map::Map;
+use mrfmap::map::{Map, TiledMap};
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// Map file.
+    /// Map file, or a tiled map's folder (described from its index, no tile read).
     map: PathBuf,
     /// Print one JSON object (`file`, `engine`, `resolution`, `voxels`, `occupied`, `bricks`,
     /// `bounds` as `[[min], [max]]` or null, `variance`, `memory_bytes`, `bytes_per_voxel`,
@@ -17,6 +17,9 @@ pub struct Args {
 }
 
 pub fn run(a: Args) -> Result<()> {
+    if TiledMap::is_tiled(&a.map) {
+        return tiled(&a);
+    }
     let map = Map::load(&a.map)?;
     let memory = map.voxels.memory_bytes();
     let per_voxel = memory as f64 / map.voxels.len().max(1) as f64;
@@ -52,6 +55,52 @@ pub fn run(a: Args) -> Result<()> {
     println!("variance:    {}", if map.has_variance { "yes" } else { "no" });
     println!("memory:      {:.1} MiB in memory ({per_voxel:.1} bytes per voxel)", memory as f64 / (1 << 20) as f64);
     for (k, v) in &map.params {
+        println!("param:       {k} = {v}");
+    }
+    Ok(())
+}
+
+/// A tiled map, from its index alone: the same fields, and `tiles` and `tile_edge`.
+fn tiled(a: &Args) -> Result<()> {
+    let map = TiledMap::open(&a.map)?;
+    let index = map.index();
+    let (voxels, occupied, bricks, memory, bounds) = map.totals();
+    let per_voxel = memory as f64 / voxels.max(1) as f64;
+    if a.json {
+        let json = serde_json::json!({
+            "file": a.map.display().to_string(),
+            "engine": index.engine,
+            "resolution": index.resolution,
+            "voxels": voxels,
+            "occupied": occupied,
+            "bricks": bricks,
+            "bounds": bounds.map(|(lo, hi)| [lo, hi]),
+            "variance": index.has_variance,
+            "memory_bytes": memory,
+            "bytes_per_voxel": per_voxel,
+            "params": index.params,
+            "tiles": index.tiles.len(),
+            "tile_edge": index.tile_edge,
+        });
+        println!("{json}");
+        return Ok(());
+    }
+    println!("file:        {} (tiled)", a.map.display());
+    println!("engine:      {}", index.engine);
+    println!("resolution:  {} m", index.resolution);
+    println!("tiles:       {} of {} m", index.tiles.len(), index.tile_edge);
+    println!("voxels:      {voxels} ({occupied} occupied)");
+    println!("bricks:      {bricks} of 8x8x8");
+    match bounds {
+        Some((lo, hi)) => println!(
+            "bounds:      [{:.3}, {:.3}, {:.3}] to [{:.3}, {:.3}, {:.3}] m",
+            lo[0], lo[1], lo[2], hi[0], hi[1], hi[2]
+        ),
+        None => println!("bounds:      (empty map)"),
+    }
+    println!("variance:    {}", if index.has_variance { "yes" } else { "no" });
+    println!("memory:      {:.1} MiB all tiles loaded ({per_voxel:.1} bytes per voxel)", memory as f64 / (1 << 20) as f64);
+    for (k, v) in &index.params {
         println!("param:       {k} = {v}");
     }
     Ok(())

@@ -6,13 +6,13 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result};
 use mrfmap::map::Aabb;
-use mrfmap::map::{Map, VoxelState};
+use mrfmap::map::{Map, TiledMap, VoxelState};
 use mrfmap::outputs::{write_changes_ply, write_map_server};
 
 /// The input map and the box of `crop` and `clear`.
 #[derive(clap::Args)]
 pub struct BoxArgs {
-    /// Map file written by `mrfmap build`.
+    /// Map file written by `mrfmap build` (or a tiled map's folder).
     map: PathBuf,
     /// The box `XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX`: voxels overlapping it with positive volume.
     #[arg(long = "box", value_name = "XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX", allow_hyphen_values = true)]
@@ -30,11 +30,20 @@ impl BoxArgs {
 }
 
 /// `mrfmap crop`: keep only the voxels in a box.
+/// A tiled map's folder is read a tile at a time: only the tiles the box overlaps.
 pub fn crop(a: BoxArgs) -> Result<()> {
-    let (map, region) = a.load()?;
+    let region = Aabb::parse(&a.region).with_context(|| format!("--box {}", a.region))?;
+    let (map, total) = if TiledMap::is_tiled(&a.map) {
+        let tiled = TiledMap::open(&a.map)?;
+        (tiled.load_region(&region)?, tiled.totals().0 as usize)
+    } else {
+        let map = Map::load(&a.map)?;
+        let total = map.voxels.len();
+        (map, total)
+    };
     let out = map.crop(&region);
     out.save(&a.output)?;
-    println!("{}: {} of {} voxels", a.output.display(), out.voxels.len(), map.voxels.len());
+    println!("{}: {} of {total} voxels", a.output.display(), out.voxels.len());
     Ok(())
 }
 

@@ -5,16 +5,18 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 use mrfmap::map::Aabb;
-use mrfmap::map::Map;
+use mrfmap::map::{Map, TiledMap};
 use mrfmap::outputs::{
-    QueryOptions, SegmentAnswer, check_path, query_box, query_points, query_polyline, query_segments,
+    BoxAnswer, LazyTiles, PointAnswer, QueryOptions, SegmentAnswer, VoxelSource, check_path, query_box, query_points,
+    query_polyline, query_segments,
 };
 use serde_json::{Value, json};
 
 #[derive(clap::Args)]
 #[command(group = clap::ArgGroup::new("what").required(true).multiple(true).args(["segment", "polyline", "points", "boxes"]))]
 pub struct Args {
-    /// Map file written by `mrfmap build`.
+    /// Map file written by `mrfmap build`, or a tiled map's folder (only the tiles the queries
+    /// reach are read).
     map: PathBuf,
     /// A straight path `X,Y,Z:X,Y,Z` (metres, world frame); repeat for more.
     #[arg(long, value_name = "X,Y,Z:X,Y,Z", allow_hyphen_values = true)]
@@ -53,19 +55,30 @@ pub fn run(a: Args) -> Result<()> {
         Some(path) => read_points(path)?,
         None => Vec::new(),
     };
-    let map = Map::load(&a.map)?;
-    let r = map.resolution();
+    // A tiled map is read lazily: only the tiles the queries reach are opened.
+    let tiled = TiledMap::is_tiled(&a.map).then(|| TiledMap::open(&a.map)).transpose()?;
+    let (map, lazy) = match &tiled {
+        Some(t) => (None, Some(LazyTiles::new(t))),
+        None => (Some(Map::load(&a.map)?), None),
+    };
+    let r = tiled.as_ref().map_or_else(|| map.as_ref().expect("one of the two").resolution(), |t| t.index().resolution);
     for ((from, to), text) in segments.iter().zip(&a.segment) {
         check_path(&[*from, *to], r).with_context(|| format!("--segment {text}"))?;
     }
     for (points, text) in polylines.iter().zip(&a.polyline) {
         check_path(points, r).with_context(|| format!("--polyline {text}"))?;
     }
-
-    let seg_answers = query_segments(&map, &segments, &options);
-    let poly_answers: Vec<_> = polylines.iter().map(|p| query_polyline(&map, p, &options)).collect();
-    let point_answers = query_points(&map, &points, &options);
-    let box_answers: Vec<_> = boxes.iter().map(|b| query_box(&map, b, &options)).collect::<Result<_, _>>()?;
+    let (seg_answers, poly_answers, point_answers, box_answers) = match (&map, lazy) {
+        (Some(map), _) => answer_all(map, &segments, &polylines, &points, &boxes, &options)?,
+        (None, Some(lazy)) => {
+            let answers = answer_all(&lazy, &segments, &polylines, &points, &boxes, &options)?;
+            let opened = lazy.finish()?;
+            let total = tiled.as_ref().map_or(0, |t| t.index().tiles.len());
+            tracing::info!("{}: read {opened} of {total} tiles", a.map.display());
+            answers
+        }
+        (None, None) => unreachable!("a map or its tiles"),
+    };
 
     if a.json {
         let path = |s: &SegmentAnswer| {
@@ -128,6 +141,24 @@ pub fn run(a: Args) -> Result<()> {
         );
     }
     Ok(())
+}
+
+/// Every query's answers from `source`.
+#[allow(clippy::type_complexity)]
+fn answer_all(
+    source: &impl VoxelSource,
+    segments: &[([f64; 3], [f64; 3])],
+    polylines: &[Vec<[f64; 3]>],
+    points: &[[f64; 3]],
+    boxes: &[Aabb],
+    options: &QueryOptions,
+) -> Result<(Vec<SegmentAnswer>, Vec<SegmentAnswer>, Vec<PointAnswer>, Vec<BoxAnswer>)> {
+    Ok((
+        query_segments(source, segments, options),
+        polylines.iter().map(|p| query_polyline(source, p, options)).collect(),
+        query_points(source, points, options),
+        boxes.iter().map(|b| query_box(source, b, options)).collect::<Result<_, _>>()?,
+    ))
 }
 
 fn parse_point(text: &str) -> Option<[f64; 3]> {

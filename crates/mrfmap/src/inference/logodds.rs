@@ -20,7 +20,7 @@ use rustc_hash::FxHashMap;
 use super::{Engine, logit, sigmoid};
 use crate::error::{Error, Result};
 use crate::frames::{Frame, RangeScan};
-use crate::map::{BrickKey, BrickList, Grid, Map, MapVoxel, SlotMask, VoxelKey, mask_set};
+use crate::map::{Aabb, BrickKey, BrickList, Grid, Map, MapVoxel, SlotMask, VoxelKey, box_keys, mask_set};
 use crate::rays::{CrossedVoxels, PixelRay, Projector, RayLimits, Rays, for_each_crossing};
 
 /// How one ray changes the voxels it crosses (occupancy probabilities, turned into log-odds).
@@ -103,11 +103,21 @@ pub struct LogOddsParams {
     pub clamp_max: f64,
     /// How the hit/miss model finds the voxels a depth image's rays cross.
     pub marking: Marking,
+    /// Store only the voxels inside this box; rays are traced exactly as without it, so those
+    /// voxels are exactly the map built without it (unlike [`RayLimits::bounds`], which cuts
+    /// the rays). A tile of a tiled map is built with its box here.
+    pub keep: Option<Aabb>,
 }
 
 impl Default for LogOddsParams {
     fn default() -> Self {
-        LogOddsParams { model: SensorModel::OCTOMAP, clamp_min: 0.1192, clamp_max: 0.971, marking: Marking::Project }
+        LogOddsParams {
+            model: SensorModel::OCTOMAP,
+            clamp_min: 0.1192,
+            clamp_max: 0.971,
+            marking: Marking::Project,
+            keep: None,
+        }
     }
 }
 
@@ -182,6 +192,14 @@ impl LogOddsEngine {
         &self.grid
     }
 
+    /// Is a brick (by key) one [`LogOddsParams::keep`] keeps? `None` without a box: every
+    /// brick. A brick counts when it overlaps the box.
+    fn keep_bricks(&self) -> Option<impl Fn([i32; 3]) -> bool + use<>> {
+        let (lo, hi) = box_keys(&self.params.keep?, self.grid.resolution());
+        let (lo, hi) = (VoxelKey(lo).brick().0, VoxelKey(hi).brick().0);
+        Some(move |b: [i32; 3]| (0..3).all(|a| b[a] >= lo[a] && b[a] <= hi[a]))
+    }
+
     /// Adds `delta` to a voxel's log-odds (allocating it at 0 = prior 0.5), then clamps.
     #[inline]
     fn update(l: &mut f32, delta: f32, min: f32, max: f32) {
@@ -201,6 +219,10 @@ impl LogOddsEngine {
     fn apply_marks(&mut self, marks: ScanMarks) {
         let SensorModel::HitMiss { p_hit, p_miss } = self.params.model else { unreachable!("hit/miss marks") };
         let (hit, miss, min, max) = (logit(p_hit) as f32, logit(p_miss) as f32, self.min, self.max);
+        let mut marks = marks;
+        if let Some(keep) = self.keep_bricks() {
+            marks.bricks.retain(|b, _| keep(b.0));
+        }
         // Each marked brick is its own work (serially this was a tenth of a projected frame).
         self.grid.update_bricks(&marks.bricks, |brick, m| {
             brick.update_slots(&m.hit, 0.0, |l| Self::update(l, hit, min, max));
@@ -249,7 +271,11 @@ impl LogOddsEngine {
                 }
                 a
             });
+        let keep = self.keep_bricks();
         for (key, (_, _, delta)) in best {
+            if keep.as_ref().is_some_and(|keep| !keep(key.brick().0)) {
+                continue;
+            }
             Self::update(self.grid.get_or_insert(key, 0.0), delta, self.min, self.max);
         }
     }
@@ -267,7 +293,8 @@ impl Engine for LogOddsEngine {
     fn integrate(&mut self, frame: &Frame) -> Result<()> {
         match (self.params.model, self.params.marking) {
             (SensorModel::HitMiss { .. }, Marking::Project) if Projector::pays_off(frame, self.grid.resolution()) => {
-                let crossed = self.projector.crossed_voxels(frame, &self.limits, self.grid.resolution());
+                let crossed =
+                    self.projector.crossed_voxels(frame, &self.limits, self.grid.resolution(), self.params.keep.as_ref());
                 self.apply_marks(ScanMarks::of_crossed(crossed));
             }
             _ => self.integrate_rays(&Rays::of_frame(frame)),

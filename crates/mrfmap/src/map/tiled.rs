@@ -142,6 +142,9 @@ pub struct TileEntry {
     pub memory_bytes: u64,
     /// Readings (frames) it was built from.
     pub frames: u64,
+    /// World bounds `[min, max]` of its voxels (none when empty).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub bounds: Option<[[f64; 3]; 2]>,
 }
 
 /// The index of a tiled map (`tiles.toml`).
@@ -206,6 +209,7 @@ impl TileIndex {
             bricks: map.voxels.brick_count() as u64,
             memory_bytes: map.voxels.memory_bytes() as u64,
             frames,
+            bounds: map.bounds().map(|(lo, hi)| [lo, hi]),
         })
     }
 
@@ -278,6 +282,25 @@ impl TiledMap {
     /// The index entry of tile `key`, if the map has it.
     pub fn entry(&self, key: TileKey) -> Option<&TileEntry> {
         self.by_key.get(&key).map(|&i| &self.index.tiles[i])
+    }
+
+    /// Sums over the index: voxels, occupied voxels, bricks, memory in bytes, and the bounds of
+    /// every tile's voxels (what `mrfmap info` says without reading a tile).
+    pub fn totals(&self) -> (u64, u64, u64, u64, Option<([f64; 3], [f64; 3])>) {
+        let t = &self.index.tiles;
+        let bounds = t.iter().filter_map(|e| e.bounds).fold(None, |acc: Option<([f64; 3], [f64; 3])>, [lo, hi]| {
+            Some(match acc {
+                None => (lo, hi),
+                Some((a, b)) => ([0, 1, 2].map(|k| a[k].min(lo[k])), [0, 1, 2].map(|k| b[k].max(hi[k]))),
+            })
+        });
+        (
+            t.iter().map(|e| e.voxels).sum(),
+            t.iter().map(|e| e.occupied).sum(),
+            t.iter().map(|e| e.bricks).sum(),
+            t.iter().map(|e| e.memory_bytes).sum(),
+            bounds,
+        )
     }
 
     /// A map with the index's header and no voxels.
@@ -409,6 +432,7 @@ mod tests {
             bricks: 0,
             memory_bytes: 0,
             frames: 0,
+            bounds: None,
         });
         index.save(tmp.path()).unwrap();
         let e = TiledMap::open(tmp.path()).unwrap_err().to_string();

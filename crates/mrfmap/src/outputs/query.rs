@@ -24,12 +24,14 @@
 //! nothing per voxel.
 
 use std::ops::ControlFlow;
+use std::sync::{Arc, Mutex};
 
 use rayon::prelude::*;
+use rustc_hash::FxHashMap;
 
 use crate::error::{Error, Result};
 use crate::inference::Engine;
-use crate::map::{Aabb, box_keys};
+use crate::map::{Aabb, TileKey, TiledMap, box_keys};
 use crate::map::{BRICK_EDGE, Brick, BrickKey, Map, MapVoxel, OCCUPIED_THRESHOLD, VoxelKey};
 use crate::rays::for_each_crossing;
 
@@ -75,6 +77,89 @@ impl VoxelSource for Map {
                 last = self.voxels.brick(bk);
             }
             last?.get(key.slot()).copied()
+        }
+    }
+}
+
+/// A tiled map as a [`VoxelSource`] that reads each tile the first time a query reads one of
+/// its voxels: a query over a few metres of a large map opens the few tiles it crosses. A
+/// tile that fails to load (or would take the memory over the limit) reads as unknown and
+/// the error is kept for [`LazyTiles::finish`], which the caller must check.
+pub struct LazyTiles<'a> {
+    map: &'a TiledMap,
+    tiles: Mutex<FxHashMap<TileKey, Option<Arc<Map>>>>,
+    state: Mutex<(u64, Option<Error>)>,
+}
+
+impl<'a> LazyTiles<'a> {
+    /// No tile read yet.
+    pub fn new(map: &'a TiledMap) -> Self {
+        LazyTiles { map, tiles: Mutex::new(FxHashMap::default()), state: Mutex::new((0, None)) }
+    }
+
+    fn tile(&self, key: TileKey) -> Option<Arc<Map>> {
+        let mut tiles = self.tiles.lock().expect("no panics under the lock");
+        if let Some(t) = tiles.get(&key) {
+            return t.clone();
+        }
+        let loaded = self.map.entry(key).and_then(|entry| {
+            let mut state = self.state.lock().expect("no panics under the lock");
+            state.0 += entry.memory_bytes;
+            let checked = crate::limits::check_memory(
+                &format!("the tiles of {} a query reads", self.map.dir().display()),
+                state.0 as f64,
+                "query a smaller region",
+            );
+            match checked.and_then(|_| self.map.load_tile(key)) {
+                Ok(tile) => tile.map(Arc::new),
+                Err(e) => {
+                    state.1.get_or_insert(e);
+                    None
+                }
+            }
+        });
+        tiles.insert(key, loaded.clone());
+        loaded
+    }
+
+    /// The tiles read (those the map has).
+    pub fn opened(&self) -> usize {
+        self.tiles.lock().expect("no panics under the lock").values().filter(|t| t.is_some()).count()
+    }
+
+    /// The tiles read, or the first error reading one.
+    pub fn finish(self) -> Result<usize> {
+        let opened = self.opened();
+        match self.state.into_inner().expect("no panics under the lock").1 {
+            Some(e) => Err(e),
+            None => Ok(opened),
+        }
+    }
+}
+
+impl VoxelSource for LazyTiles<'_> {
+    fn resolution(&self) -> f64 {
+        self.map.index().resolution
+    }
+
+    fn has_variance(&self) -> bool {
+        self.map.index().has_variance
+    }
+
+    fn voxel(&self, key: VoxelKey) -> Option<MapVoxel> {
+        self.tile(self.map.grid().tile_of(key))?.voxels.get(key).copied()
+    }
+
+    fn lookup(&self) -> impl FnMut(VoxelKey) -> Option<MapVoxel> + '_ {
+        // A segment's voxels stay in one tile for long runs: the tile is looked up (under the
+        // lock) only when it changes.
+        let mut last: Option<(TileKey, Option<Arc<Map>>)> = None;
+        move |key: VoxelKey| {
+            let tile = self.map.grid().tile_of(key);
+            if last.as_ref().is_none_or(|(k, _)| *k != tile) {
+                last = Some((tile, self.tile(tile)));
+            }
+            last.as_ref()?.1.as_ref()?.voxels.get(key).copied()
         }
     }
 }

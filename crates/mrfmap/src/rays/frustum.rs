@@ -32,7 +32,7 @@ use std::ops::ControlFlow;
 
 use super::{CameraRays, FrameRays, RayLimits, for_each_crossing};
 use crate::frames::{Camera, Frame};
-use crate::map::Aabb;
+use crate::map::{Aabb, box_keys};
 use crate::map::{BRICK_EDGE, BrickKey, SlotMask, VoxelKey, floor_i32, mask_set};
 
 /// The voxels one depth image's rays cross, and the voxels holding the measured surfaces.
@@ -58,7 +58,7 @@ pub struct CrossedVoxels {
 /// for v in 0..32 { for u in 0..32 { depth.set(u, v, 1.0); } }
 /// let pose = look_at(Vector3::new(0.01, 0.01, 0.01), Vector3::new(1.0, 0.01, 0.01)).unwrap();
 /// let frame = Frame { index: 0, timestamp: 0.0, depth, pose, camera, noise: None };
-/// let c = Projector::default().crossed_voxels(&frame, &RayLimits::default(), 0.05);
+/// let c = Projector::default().crossed_voxels(&frame, &RayLimits::default(), 0.05, None);
 /// // The wall z = 1 m ahead is at x = 1.01, in voxel column 20; no end falls elsewhere.
 /// assert!(!c.ends.is_empty() && c.ends.iter().all(|k| k.0[0] == 20));
 /// let count: u32 = c.crossed.iter().flat_map(|(_, m)| m.iter()).map(|w| w.count_ones()).sum();
@@ -102,11 +102,25 @@ impl Projector {
     /// within `limits` (OctoMap's segments, [`RayLimits::hit_miss_segment`], each from its
     /// start to its end, the end voxel included), and the voxels holding the segment ends that
     /// are measured surfaces.
-    pub fn crossed_voxels(&mut self, frame: &Frame, limits: &RayLimits, resolution: f64) -> CrossedVoxels {
+    ///
+    /// With `keep`, boxes of voxels outside it are not looked at (the voxels inside are the
+    /// same: whether a box is crossed depends on the box alone), though some outside may be
+    /// returned.
+    pub fn crossed_voxels(
+        &mut self,
+        frame: &Frame,
+        limits: &RayLimits,
+        resolution: f64,
+        keep: Option<&Aabb>,
+    ) -> CrossedVoxels {
         let rays = FrameRays::with_camera_rays(frame, &mut self.camera_rays);
         let ends = self.segments.fill(&rays, limits, resolution);
         let Some(deepest) = self.segments.deepest() else { return CrossedVoxels::default() };
-        let view = View::new(frame, &self.segments, resolution);
+        let mut view = View::new(frame, &self.segments, resolution);
+        view.keep = keep.map(|k| {
+            let (lo, hi) = box_keys(k, resolution);
+            Box3 { lo, hi: hi.map(|h| h + 1) }
+        });
         let root = view.root_box(deepest as f64, limits);
         // The top of the tree is cheap and serial; the voxel-level work of each undecided
         // brick is independent, so bricks go to the thread pool.
@@ -544,6 +558,8 @@ struct View<'a> {
     /// Boxes whose corners are all within this distance have a pixel centre inside every
     /// voxel's image, so "every pixel passes through" means "every voxel is crossed".
     dense_range2: f64,
+    /// Voxels (keys, upper end exclusive) outside which no box is looked at.
+    keep: Option<Box3>,
 }
 
 impl<'a> View<'a> {
@@ -571,6 +587,7 @@ impl<'a> View<'a> {
             u_last: (seg.width - 1) as f64,
             v_last: (seg.height - 1) as f64,
             dense_range2: dense_range * dense_range,
+            keep: None,
         }
     }
 
@@ -606,6 +623,9 @@ impl<'a> View<'a> {
         crossed: &mut Vec<(BrickKey, SlotMask)>,
         undecided: &mut Vec<(BrickKey, Footprint)>,
     ) {
+        if self.keep.as_ref().is_some_and(|k| (0..3).any(|a| b.hi[a] <= k.lo[a] || b.lo[a] >= k.hi[a])) {
+            return;
+        }
         let (seen, footprint) = self.classify(&b);
         match seen {
             Seen::None => {}
@@ -860,7 +880,7 @@ mod tests {
     }
 
     fn projected(frame: &Frame, limits: &RayLimits, r: f64) -> (BTreeSet<VoxelKey>, BTreeSet<VoxelKey>) {
-        let c = Projector::default().crossed_voxels(frame, limits, r);
+        let c = Projector::default().crossed_voxels(frame, limits, r, None);
         let mut bricks = BTreeSet::new();
         let set = c
             .crossed

@@ -1,5 +1,5 @@
 //! Analytic scenes: solid boxes, spheres and vertical cylinders seen by a pinhole depth
-//! camera from listed or orbiting viewpoints. They give exact depth images and exact
+//! camera from listed or orbiting viewpoints, or along a path. They give exact depth images and exact
 //! ground-truth occupancy ("is this point inside?") for tests and evaluation.
 //!
 //! The scene file format is fixed (README, "Scene files"); unknown keys are errors.
@@ -141,6 +141,7 @@ struct SceneFile {
     #[serde(rename = "view", default)]
     views: Vec<ViewDef>,
     orbit: Option<OrbitDef>,
+    path: Option<PathDef>,
 }
 
 #[derive(Deserialize)]
@@ -179,6 +180,70 @@ struct OrbitDef {
     radius: f64,
     height: f64,
     views: u32,
+}
+
+/// A trajectory: `frames` views at equal steps along the polyline through `waypoints`, each
+/// looking horizontally along the direction of travel, turned by a yaw that swings
+/// `sweep_deg / 2` degrees either way over `sweep_period` frames (a robot looking around).
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct PathDef {
+    waypoints: Vec<[f64; 3]>,
+    frames: u32,
+    #[serde(default)]
+    sweep_deg: f64,
+    #[serde(default = "default_sweep_period")]
+    sweep_period: f64,
+}
+
+fn default_sweep_period() -> f64 {
+    40.0
+}
+
+/// Most views a scene may list or generate (each becomes a rendered image).
+const MAX_VIEWS: u32 = 1_000_000;
+
+impl PathDef {
+    fn views(&self) -> std::result::Result<Vec<Pose>, String> {
+        let finite = self.waypoints.iter().flatten().all(|v| v.is_finite());
+        if self.waypoints.len() < 2 || !finite {
+            return Err("[path]: need at least two finite waypoints".into());
+        }
+        if self.frames < 2 || self.frames > MAX_VIEWS {
+            return Err(format!("[path]: frames must be 2 to {MAX_VIEWS}, got {}", self.frames));
+        }
+        if !(self.sweep_deg.is_finite() && self.sweep_deg >= 0.0 && self.sweep_deg < 360.0)
+            || !(self.sweep_period > 0.0 && self.sweep_period.is_finite())
+        {
+            return Err("[path]: need 0 <= sweep_deg < 360 and sweep_period > 0".into());
+        }
+        let points: Vec<Vector3<f64>> = self.waypoints.iter().map(|w| Vector3::from(*w)).collect();
+        let legs: Vec<(Vector3<f64>, Vector3<f64>, f64)> = points
+            .windows(2)
+            .map(|w| (w[0], w[1] - w[0], (w[1] - w[0]).norm()))
+            .filter(|(_, d, len)| *len > 1e-9 && d.x.hypot(d.y) > 1e-9)
+            .collect();
+        if legs.len() + 1 < points.len() {
+            return Err("[path]: consecutive waypoints must differ in x or y (the camera looks along the path)".into());
+        }
+        let total: f64 = legs.iter().map(|l| l.2).sum();
+        let (mut leg, mut start) = (0, 0.0);
+        let mut views = Vec::with_capacity(self.frames as usize);
+        for k in 0..self.frames {
+            let s = total * k as f64 / (self.frames - 1) as f64;
+            while leg + 1 < legs.len() && s > start + legs[leg].2 {
+                start += legs[leg].2;
+                leg += 1;
+            }
+            let (from, d, len) = legs[leg];
+            let eye = from + d * ((s - start) / len).min(1.0);
+            let yaw = d.y.atan2(d.x)
+                + 0.5 * self.sweep_deg.to_radians() * (std::f64::consts::TAU * k as f64 / self.sweep_period).sin();
+            let target = eye + Vector3::new(yaw.cos(), yaw.sin(), 0.0);
+            views.push(look_at(eye, target).map_err(|m| format!("[path] view {k}: {m}"))?);
+        }
+        Ok(views)
+    }
 }
 
 impl Scene {
@@ -248,8 +313,8 @@ impl Scene {
             if !views.is_empty() {
                 return Err(bad("give either [[view]] entries or an [orbit], not both".into()));
             }
-            if o.views == 0 || !(o.radius > 0.0) {
-                return Err(bad("[orbit]: need views >= 1 and radius > 0".into()));
+            if o.views == 0 || o.views > MAX_VIEWS || !(o.radius > 0.0) {
+                return Err(bad(format!("[orbit]: need 1 to {MAX_VIEWS} views and radius > 0")));
             }
             for k in 0..o.views {
                 let a = std::f64::consts::TAU * k as f64 / o.views as f64;
@@ -257,8 +322,14 @@ impl Scene {
                 views.push(look_at(eye, Vector3::from(o.center)).map_err(|m| bad(format!("[orbit] view {k}: {m}")))?);
             }
         }
+        if let Some(p) = &f.path {
+            if !views.is_empty() {
+                return Err(bad("give one of [[view]] entries, an [orbit] or a [path]".into()));
+            }
+            views = p.views().map_err(bad)?;
+        }
         if views.is_empty() {
-            return Err(bad("no viewpoints: add [[view]] entries or an [orbit]".into()));
+            return Err(bad("no viewpoints: add [[view]] entries, an [orbit] or a [path]".into()));
         }
         Ok(Scene { camera: f.camera, noise, shapes, views })
     }
@@ -421,5 +492,18 @@ target = [1.0, 0.0, 0.0]
         assert!(e.to_string().contains("s.toml") && e.to_string().contains("pyramid"), "{e}");
         let e = Scene::from_toml(base, Path::new("s.toml")).unwrap_err();
         assert!(e.to_string().contains("no viewpoints"), "{e}");
+        // A path: equal steps along the waypoints, looking along the way.
+        let path = format!("{base}[path]\nwaypoints = [[0.0, 0.0, 1.0], [2.0, 0.0, 1.0], [2.0, 3.0, 1.0]]\nframes = 6\n");
+        let scene = Scene::from_toml(&path, Path::new("s.toml")).unwrap();
+        let eyes: Vec<Vector3<f64>> = scene.views.iter().map(|p| p.translation.vector).collect();
+        assert!((eyes[1] - Vector3::new(1.0, 0.0, 1.0)).norm() < 1e-12, "{:?}", eyes[1]);
+        assert!((eyes[5] - Vector3::new(2.0, 3.0, 1.0)).norm() < 1e-12);
+        let ahead = |p: &Pose| p.rotation * Vector3::z();
+        assert!((ahead(&scene.views[0]) - Vector3::x()).norm() < 1e-9);
+        assert!((ahead(&scene.views[4]) - Vector3::y()).norm() < 1e-9);
+        let e = Scene::from_toml(&format!("{path}[orbit]\ncenter = [0.0, 0.0, 0.5]\nradius = 2.0\nheight = 1.5\nviews = 4\n"), Path::new("s.toml")).unwrap_err();
+        assert!(e.to_string().contains("one of"), "{e}");
+        let e = Scene::from_toml(&format!("{base}[path]\nwaypoints = [[0.0, 0.0, 1.0]]\nframes = 6\n"), Path::new("s.toml")).unwrap_err();
+        assert!(e.to_string().contains("two finite waypoints"), "{e}");
     }
 }

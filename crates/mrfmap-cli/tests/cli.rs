@@ -1539,3 +1539,50 @@ fn thresholds_and_boxes_outside_their_range_are_refused() {
     let o = run(&["view", s(&map), "-o", s(&dir.join("no/such/v.png"))]);
     assert!(!o.status.success() && stderr(&o).contains("output folder"), "{}", stderr(&o));
 }
+
+#[test]
+fn tiled_maps_equal_the_whole_map_and_are_read_lazily() {
+    let dir = workdir("tiles");
+    let whole = logodds_map(&dir);
+    let data = dir.join("data");
+    // Tiles of one brick (0.4 m): over a hundred of them for the 4 m room.
+    let tiled = dir.join("tiled");
+    let o = run(&["build", s(&data), "-o", s(&tiled), "--resolution", "0.05", "--tile", "0.4", "-q"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(tiled.join("tiles.toml").is_file());
+    same_maps(&whole, &tiled);
+    let o = run(&["info", s(&tiled), "--json"]);
+    let info: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let tiles = info["tiles"].as_u64().unwrap();
+    assert!(tiles >= 100, "{tiles} tiles");
+    let whole_map = mrfmap::map::Map::load(&whole).unwrap();
+    assert_eq!(info["voxels"].as_u64().unwrap(), whole_map.voxels.len() as u64);
+    // A 1 m segment along x crosses three tiles of 0.4 m: at most those are read.
+    let segment = ["--segment", "0.01,0.1,0.05:1.01,0.1,0.05"];
+    let o = run(&[&["query", s(&tiled), "--json"][..], &segment[..]].concat());
+    assert!(o.status.success(), "{}", stderr(&o));
+    let read: u64 = stderr(&o).split("read ").nth(1).and_then(|t| t.split(' ').next()?.parse().ok()).expect("read N");
+    assert!((1..=3).contains(&read), "{}", stderr(&o));
+    let plain = run(&[&["query", s(&whole), "--json"][..], &segment[..]].concat());
+    assert_eq!(stdout(&o), stdout(&plain), "the same answer as the whole map");
+    // crop reads the tiles its box overlaps and gives the whole map's crop.
+    let (a, b) = (dir.join("a.mrfmap"), dir.join("b.mrfmap"));
+    for (map, out) in [(&whole, &a), (&tiled, &b)] {
+        let o = run(&["crop", s(map), "--box", "-0.5,-0.5,0,0.7,0.5,1", "-o", s(out)]);
+        assert!(o.status.success(), "{}", stderr(&o));
+    }
+    same_maps(&a, &b);
+    // Bad tiles: not whole bricks, a file where the folder goes, a laser log.
+    let o = run(&["build", s(&data), "-o", s(&dir.join("t2")), "--resolution", "0.05", "--tile", "0.3"]);
+    assert!(stderr(&o).contains("whole number of bricks") && stderr(&o).contains("0.4"), "{}", stderr(&o));
+    let o = run(&["build", s(&data), "-o", s(&whole), "--resolution", "0.05", "--tile", "0.4"]);
+    assert!(stderr(&o).contains("is a file"), "{}", stderr(&o));
+    let o =
+        run(&["build", s(&data.join("depth.txt")), "-o", s(&dir.join("t3")), "--resolution", "0.05", "--tile", "0.4"]);
+    assert!(!o.status.success() && stderr(&o).contains("dataset folder"), "{}", stderr(&o));
+    // A tile file gone: the error names it.
+    let first = std::fs::read_dir(&tiled).unwrap().flatten().find(|e| e.file_name() != "tiles.toml").unwrap();
+    std::fs::remove_file(first.path()).unwrap();
+    let o = run(&["export", s(&tiled), "--ply", s(&dir.join("t.ply"))]);
+    assert!(!o.status.success() && stderr(&o).contains(first.file_name().to_str().unwrap()), "{}", stderr(&o));
+}

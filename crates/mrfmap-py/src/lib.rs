@@ -774,10 +774,257 @@ fn load_map(path: PathBuf) -> PyResult<PyMap> {
     Ok(PyMap { map: Map::load(&path).map_err(py_err)? })
 }
 
+/// Renders a scene file into a dataset folder (as `mrfmap simulate`); returns the frames.
+#[pyfunction]
+#[pyo3(signature = (scene, out_dir, seed=0))]
+fn simulate(py: Python<'_>, scene: PathBuf, out_dir: PathBuf, seed: u64) -> PyResult<usize> {
+    py.detach(|| {
+        let scene = mrfmap::source::Scene::load(&scene)?;
+        mrfmap::source::simulate(&scene, &out_dir, seed).map(|s| s.frames)
+    })
+    .map_err(py_err)
+}
+
+/// How a dataset is built into a map, whole or in tiles: the keyword arguments of
+/// `build_dataset` and `mrfmap.distributed.build` (the stub file documents them).
+struct BuildSpec {
+    dataset: mrfmap::source::Dataset,
+    config: EngineConfig,
+    /// Tile edge and margin, for tiled builds.
+    tile: Option<(f64, Option<f64>)>,
+    /// Worker threads (None: all cores).
+    threads: Option<usize>,
+}
+
+impl BuildSpec {
+    const KEYS: &[&str] = &[
+        "resolution",
+        "engine",
+        "tile",
+        "margin",
+        "max_range",
+        "bounds",
+        "noise",
+        "particles",
+        "iterations",
+        "prior",
+        "threads",
+    ];
+
+    fn of(dataset: &std::path::Path, spec: &Bound<'_, PyDict>) -> PyResult<Self> {
+        for key in spec.keys() {
+            let key: String = key.extract()?;
+            if !Self::KEYS.contains(&key.as_str()) {
+                return Err(PyValueError::new_err(format!(
+                    "unknown option {key:?} (known: {})",
+                    Self::KEYS.join(", ")
+                )));
+            }
+        }
+        fn get<'py, T: FromPyObjectOwned<'py>>(spec: &Bound<'py, PyDict>, key: &str) -> PyResult<Option<T>> {
+            match spec.get_item(key)? {
+                Some(v) if !v.is_none() => v
+                    .extract::<T>()
+                    .map(Some)
+                    .map_err(|e| PyValueError::new_err(format!("{key}: {}", Into::<PyErr>::into(e)))),
+                _ => Ok(None),
+            }
+        }
+        let resolution: f64 =
+            get(spec, "resolution")?.ok_or_else(|| PyValueError::new_err("resolution is required"))?;
+        let kind: EngineKind =
+            get::<String>(spec, "engine")?.as_deref().unwrap_or("logodds").parse().map_err(py_err)?;
+        let bounds = get::<Vec<f64>>(spec, "bounds")?
+            .map(|b| match b.as_slice() {
+                [a, b, c, d, e, f] => Aabb::new([*a, *b, *c], [*d, *e, *f]).map_err(py_err),
+                _ => Err(PyValueError::new_err("bounds: need [xmin, ymin, zmin, xmax, ymax, zmax]")),
+            })
+            .transpose()?;
+        let mut dataset = mrfmap::source::Dataset::open(dataset).map_err(py_err)?;
+        if let Some(noise) = get::<PathBuf>(spec, "noise")? {
+            dataset.set_noise_file(&noise).map_err(py_err)?;
+        }
+        let mut config = EngineConfig::new(kind, resolution);
+        config.limits = RayLimits { max_range: get(spec, "max_range")?, bounds };
+        config.limits.validate().map_err(py_err)?;
+        config.crm.particles = get(spec, "particles")?.unwrap_or(config.crm.particles);
+        config.mrf.iterations = get(spec, "iterations")?.unwrap_or(config.mrf.iterations);
+        config.mrf.prior = get(spec, "prior")?.unwrap_or(config.mrf.prior);
+        let tile = get::<f64>(spec, "tile")?.map(|t| Ok::<_, PyErr>((t, get(spec, "margin")?))).transpose()?;
+        Ok(BuildSpec { dataset, config, tile, threads: get(spec, "threads")? })
+    }
+
+    fn tiling(&self) -> PyResult<mrfmap::inference::Tiling> {
+        let (edge, margin) =
+            self.tile.ok_or_else(|| PyValueError::new_err("tile (the tile edge in metres) is required"))?;
+        mrfmap::inference::Tiling::new(&self.config, edge, margin).map_err(py_err)
+    }
+
+    /// Runs `work` on `threads` threads (all cores without), without the GIL.
+    fn run<T: Send>(&self, py: Python<'_>, work: impl FnOnce() -> mrfmap::Result<T> + Send) -> PyResult<T> {
+        py.detach(|| match self.threads {
+            Some(n) => rayon::ThreadPoolBuilder::new()
+                .num_threads(n.max(1))
+                .build()
+                .map_err(|e| mrfmap::Error::Invalid(format!("threads: {e}")))?
+                .install(work),
+            None => work(),
+        })
+        .map_err(py_err)
+    }
+
+    fn frames(&self, indices: Vec<usize>) -> impl Iterator<Item = mrfmap::Result<Frame>> + '_ {
+        indices.into_iter().map(|i| self.dataset.frame(i))
+    }
+}
+
+/// Builds a dataset folder's frames into one map (see the stub file).
+#[pyfunction]
+#[pyo3(signature = (dataset, **options))]
+fn build_dataset(py: Python<'_>, dataset: PathBuf, options: Option<&Bound<'_, PyDict>>) -> PyResult<PyMap> {
+    let spec = BuildSpec::of(&dataset, &options.cloned().unwrap_or_else(|| PyDict::new(py)))?;
+    if spec.tile.is_some() {
+        return Err(PyValueError::new_err("build_dataset builds one map; tiled builds: mrfmap.distributed.build"));
+    }
+    let map = spec.run(py, || {
+        let mut engine = new_engine(&spec.config)?;
+        for frame in spec.frames((0..spec.dataset.len()).collect()) {
+            engine.integrate(&frame?)?;
+        }
+        engine.finish()?;
+        Ok(engine.into_map())
+    })?;
+    Ok(PyMap { map })
+}
+
+/// A tile's key as Python sees it.
+type TileKeyTuple = (i32, i32, i32);
+
+/// Which frames reach which tile: `[((x, y, z), [frame, ...]), ...]`, reading each frame once.
+#[pyfunction]
+#[pyo3(signature = (dataset, **options))]
+fn _plan_tiles(
+    py: Python<'_>,
+    dataset: PathBuf,
+    options: Option<&Bound<'_, PyDict>>,
+) -> PyResult<Vec<(TileKeyTuple, Vec<usize>)>> {
+    let spec = BuildSpec::of(&dataset, &options.cloned().unwrap_or_else(|| PyDict::new(py)))?;
+    let tiling = spec.tiling()?;
+    let plan = spec.run(py, || {
+        let frames = (0..spec.dataset.len()).map(|i| spec.dataset.frame(i).map(|f| (i, f)));
+        tiling.plan(&spec.config, frames)
+    })?;
+    Ok(plan.into_iter().map(|(k, f)| ((k.0[0], k.0[1], k.0[2]), f)).collect())
+}
+
+/// The memory estimate (bytes) of building tile `key` from `frames`.
+#[pyfunction]
+#[pyo3(signature = (dataset, key, frames, **options))]
+fn _tile_estimate(
+    py: Python<'_>,
+    dataset: PathBuf,
+    key: (i32, i32, i32),
+    frames: Vec<usize>,
+    options: Option<&Bound<'_, PyDict>>,
+) -> PyResult<f64> {
+    let spec = BuildSpec::of(&dataset, &options.cloned().unwrap_or_else(|| PyDict::new(py)))?;
+    let tiling = spec.tiling()?;
+    let key = mrfmap::map::TileKey([key.0, key.1, key.2]);
+    let config =
+        tiling.tile_config(&spec.config, key).ok_or_else(|| PyValueError::new_err("tile outside the bounds"))?;
+    spec.run(py, || {
+        let step = frames.len().div_ceil(8).max(1);
+        let sampled =
+            frames.iter().step_by(step).map(|&i| spec.dataset.frame(i)).collect::<mrfmap::Result<Vec<_>>>()?;
+        let poses = frames.iter().map(|&i| spec.dataset.frames()[i].pose);
+        Ok(frames_extent(poses, &sampled, &config).map_or(0.0, |e| mrfmap::inference::estimate_memory(&config, &e)))
+    })
+}
+
+/// Builds tile `key` from `frames` into the folder `out_dir`; returns its index entry (a dict)
+/// and the tile map's parameters.
+#[pyfunction]
+#[pyo3(signature = (dataset, out_dir, key, frames, **options))]
+fn _build_tile<'py>(
+    py: Python<'py>,
+    dataset: PathBuf,
+    out_dir: PathBuf,
+    key: (i32, i32, i32),
+    frames: Vec<usize>,
+    options: Option<&Bound<'py, PyDict>>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let spec = BuildSpec::of(&dataset, &options.cloned().unwrap_or_else(|| PyDict::new(py)))?;
+    let tiling = spec.tiling()?;
+    let key = mrfmap::map::TileKey([key.0, key.1, key.2]);
+    let (entry, params) = spec.run(py, || tiling.build_into(&out_dir, &spec.config, key, spec.frames(frames)))?;
+    let out = PyDict::new(py);
+    out.set_item("key", entry.key.to_vec())?;
+    out.set_item("file", entry.file)?;
+    out.set_item("voxels", entry.voxels)?;
+    out.set_item("occupied", entry.occupied)?;
+    out.set_item("bricks", entry.bricks)?;
+    out.set_item("memory_bytes", entry.memory_bytes)?;
+    out.set_item("frames", entry.frames)?;
+    out.set_item("bounds", entry.bounds.map(|b| b.to_vec()))?;
+    out.set_item("params", params)?;
+    Ok(out)
+}
+
+/// Writes the index of a tiled map into `out_dir` from the entries `_build_tile` returned
+/// (the last step of a tiled build: it makes the folder a map).
+#[pyfunction]
+#[pyo3(signature = (dataset, out_dir, entries, **options))]
+fn _write_tile_index(
+    py: Python<'_>,
+    dataset: PathBuf,
+    out_dir: PathBuf,
+    entries: Vec<Bound<'_, PyDict>>,
+    options: Option<&Bound<'_, PyDict>>,
+) -> PyResult<usize> {
+    let spec = BuildSpec::of(&dataset, &options.cloned().unwrap_or_else(|| PyDict::new(py)))?;
+    let tiling = spec.tiling()?;
+    let mut params: std::collections::BTreeMap<String, String> = match entries.first() {
+        Some(e) => e.get_item("params")?.map(|p| p.extract()).transpose()?.unwrap_or_default(),
+        None => Default::default(),
+    };
+    params.insert("source".into(), dataset.display().to_string());
+    let mut index = tiling.index(&spec.config, params);
+    for e in &entries {
+        let field = |k: &str| -> PyResult<Bound<'_, PyAny>> {
+            e.get_item(k)?.ok_or_else(|| PyValueError::new_err(format!("tile entry without {k:?}")))
+        };
+        let key: Vec<i32> = field("key")?.extract()?;
+        let bounds: Option<Vec<Vec<f64>>> = field("bounds")?.extract()?;
+        index.tiles.push(mrfmap::map::TileEntry {
+            key: key.try_into().map_err(|_| PyValueError::new_err("tile key: need three integers"))?,
+            file: field("file")?.extract()?,
+            voxels: field("voxels")?.extract()?,
+            occupied: field("occupied")?.extract()?,
+            bricks: field("bricks")?.extract()?,
+            memory_bytes: field("memory_bytes")?.extract()?,
+            frames: field("frames")?.extract()?,
+            bounds: bounds
+                .map(|b| match b.as_slice() {
+                    [lo, hi] if lo.len() == 3 && hi.len() == 3 => Ok([[lo[0], lo[1], lo[2]], [hi[0], hi[1], hi[2]]]),
+                    _ => Err(PyValueError::new_err("tile bounds: need [[x, y, z], [x, y, z]]")),
+                })
+                .transpose()?,
+        });
+    }
+    index.save(&out_dir).map_err(py_err)?;
+    Ok(index.tiles.len())
+}
+
 #[pymodule]
 fn _mrfmap(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_class::<Mapper>()?;
     m.add_class::<PyMap>()?;
     m.add_function(wrap_pyfunction!(load_map, m)?)?;
+    m.add_function(wrap_pyfunction!(simulate, m)?)?;
+    m.add_function(wrap_pyfunction!(build_dataset, m)?)?;
+    m.add_function(wrap_pyfunction!(_plan_tiles, m)?)?;
+    m.add_function(wrap_pyfunction!(_tile_estimate, m)?)?;
+    m.add_function(wrap_pyfunction!(_build_tile, m)?)?;
+    m.add_function(wrap_pyfunction!(_write_tile_index, m)?)?;
     Ok(())
 }

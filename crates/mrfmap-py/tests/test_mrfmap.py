@@ -2,6 +2,7 @@
 every kind of bad input raising ValueError (never crashing the interpreter)."""
 
 import math
+import os
 
 import numpy as np
 import pytest
@@ -282,3 +283,56 @@ def test_a_frame_or_scan_too_large_for_memory_is_refused_before_any_work(engine)
     # The same frame at a sane resolution goes in.
     ok = mrfmap.Mapper(0.05, engine=engine, particles=21, **CAM)
     ok.add_frame(wall(), pose())
+
+
+def small_floor(tmp_path):
+    """A 2 x 2-room floor (6.4 m rooms) seen along a path, rendered into a dataset folder by
+    the floor generator the benchmark uses."""
+    import pathlib
+    import subprocess
+    import sys
+
+    script = pathlib.Path(__file__).resolve().parents[3] / "bench" / "floor_scene.py"
+    scene = tmp_path / "floor.toml"
+    subprocess.run(
+        [sys.executable, str(script), str(scene), "--rooms", "2", "--room", "6.4", "--frames", "40",
+         "--width", "64", "--height", "48"],
+        check=True,
+    )
+    dataset = tmp_path / "floor"
+    assert mrfmap.simulate(scene, dataset) == 40
+    return dataset
+
+
+def dask_or_skip():
+    if os.environ.get("MRFMAP_REQUIRE_DASK"):
+        import distributed  # noqa: F401  (build-and-test.sh installs it: missing is a failure)
+    else:
+        pytest.importorskip("distributed", reason="needs dask[distributed] (pip install 'mrfmap[distributed]')")
+
+
+def test_distributed_tiles_equal_the_whole_map(tmp_path):
+    dask_or_skip()
+    from distributed import Client, LocalCluster
+
+    import mrfmap.distributed as md
+
+    dataset = small_floor(tmp_path)
+    whole = mrfmap.build_dataset(dataset, resolution=0.1)
+    out = tmp_path / "tiles"
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as cluster:
+        with Client(cluster) as client:
+            summary = md.build(dataset, out, tile=3.2, resolution=0.1, client=client, progress=False)
+    assert summary["tiles"] >= 9 and 30 <= summary["frames"] <= 40
+    tiled = mrfmap.load_map(out)
+    assert len(tiled) == len(whole) == summary["voxels"]
+    order = lambda c: np.lexsort(c.T)  # noqa: E731
+    (cw, ow, _), (ct, ot, _) = whole.voxels(), tiled.voxels()
+    iw, it = order(cw), order(ct)
+    assert np.array_equal(cw[iw], ct[it])
+    assert np.array_equal(ow[iw], ot[it]), "log-odds tiles must equal the whole map exactly"
+    # Bad options are refused before any work.
+    with pytest.raises(ValueError, match="whole number of bricks"):
+        md.build(dataset, tmp_path / "bad", tile=1.0, resolution=0.3)
+    with pytest.raises(ValueError, match="unknown option"):
+        mrfmap.build_dataset(dataset, resolution=0.1, colour="red")

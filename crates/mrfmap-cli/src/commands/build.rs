@@ -1076,7 +1076,7 @@ impl<'a> FrameCache<'a> {
             return Ok(f.clone());
         }
         let frame = Arc::new(self.dataset.frame(index)?);
-        let size = |f: &Frame| f.depth.data().len() * std::mem::size_of::<f32>();
+        let size = |f: &Frame| std::mem::size_of_val(f.depth.data());
         self.bytes += size(&frame);
         self.frames.insert(index, frame.clone());
         self.order.push_back(index);

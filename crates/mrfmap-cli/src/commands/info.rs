@@ -64,7 +64,8 @@ pub fn run(a: Args) -> Result<()> {
 fn tiled(a: &Args) -> Result<()> {
     let map = TiledMap::open(&a.map)?;
     let index = map.index();
-    let (voxels, occupied, bricks, memory, bounds) = map.totals();
+    let t = map.totals();
+    let (voxels, occupied, bricks, memory) = (t.voxels, t.occupied, t.bricks, t.memory_bytes);
     let per_voxel = memory as f64 / voxels.max(1) as f64;
     if a.json {
         let json = serde_json::json!({
@@ -74,7 +75,7 @@ fn tiled(a: &Args) -> Result<()> {
             "voxels": voxels,
             "occupied": occupied,
             "bricks": bricks,
-            "bounds": bounds.map(|(lo, hi)| [lo, hi]),
+            "bounds": t.bounds,
             "variance": index.has_variance,
             "memory_bytes": memory,
             "bytes_per_voxel": per_voxel,
@@ -91,15 +92,18 @@ fn tiled(a: &Args) -> Result<()> {
     println!("tiles:       {} of {} m", index.tiles.len(), index.tile_edge);
     println!("voxels:      {voxels} ({occupied} occupied)");
     println!("bricks:      {bricks} of 8x8x8");
-    match bounds {
-        Some((lo, hi)) => println!(
+    match t.bounds {
+        Some([lo, hi]) => println!(
             "bounds:      [{:.3}, {:.3}, {:.3}] to [{:.3}, {:.3}, {:.3}] m",
             lo[0], lo[1], lo[2], hi[0], hi[1], hi[2]
         ),
         None => println!("bounds:      (empty map)"),
     }
     println!("variance:    {}", if index.has_variance { "yes" } else { "no" });
-    println!("memory:      {:.1} MiB all tiles loaded ({per_voxel:.1} bytes per voxel)", memory as f64 / (1 << 20) as f64);
+    println!(
+        "memory:      {:.1} MiB all tiles loaded ({per_voxel:.1} bytes per voxel)",
+        memory as f64 / (1 << 20) as f64
+    );
     for (k, v) in &index.params {
         println!("param:       {k} = {v}");
     }

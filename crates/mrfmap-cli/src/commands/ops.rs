@@ -35,7 +35,7 @@ pub fn crop(a: BoxArgs) -> Result<()> {
     let region = Aabb::parse(&a.region).with_context(|| format!("--box {}", a.region))?;
     let (map, total) = if TiledMap::is_tiled(&a.map) {
         let tiled = TiledMap::open(&a.map)?;
-        (tiled.load_region(&region)?, tiled.totals().0 as usize)
+        (tiled.load_region(&region)?, tiled.totals().voxels as usize)
     } else {
         let map = Map::load(&a.map)?;
         let total = map.voxels.len();

@@ -3,7 +3,9 @@
 Build a map from numpy depth images and 4x4 camera-to-world poses with one of three engines
 (``"logodds"``, OctoMap's update; ``"mrf"``, MRFMap's ray Markov random field; ``"crm"``,
 confidence-rich mapping with a variance per voxel), query it at points, get its voxels as
-arrays, save it, load it, and export it as PLY or OctoMap ``.bt`` / ``.ot``.
+arrays, save it, load it, and export it as PLY or OctoMap ``.bt`` / ``.ot``. Dataset folders
+build whole (``build_dataset``) or, for maps larger than one machine, as tiled maps on a Dask
+cluster (``mrfmap.distributed``, the optional extra ``mrfmap[distributed]``).
 
 >>> import numpy as np, mrfmap
 >>> m = mrfmap.Mapper(0.05, fx=60, fy=60, cx=39.5, cy=29.5, width=80, height=60)
@@ -14,6 +16,6 @@ arrays, save it, load it, and export it as PLY or OctoMap ``.bt`` / ``.ot``.
 True
 """
 
-from ._mrfmap import Map, Mapper, load_map
+from ._mrfmap import Map, Mapper, build_dataset, load_map, simulate
 
-__all__ = ["Map", "Mapper", "load_map"]
+__all__ = ["Map", "Mapper", "build_dataset", "load_map", "simulate"]

@@ -1,7 +1,7 @@
 """Type hints and documentation of mrfmap's compiled module."""
 
 import os
-from typing import Any, Dict, Optional, Tuple
+from typing import Any, Dict, List, Optional, Tuple
 
 import numpy as np
 import numpy.typing as npt
@@ -210,4 +210,20 @@ class Map:
     def __len__(self) -> int: ...
 
 def load_map(path: os.PathLike[str] | str) -> Map:
-    """Loads a map file written by ``mrfmap build`` or ``Map.save``."""
+    """Loads a map file written by ``mrfmap build`` or ``Map.save``, or a tiled map's folder
+    (every tile stitched into one map; the memory limit applies to their sum)."""
+
+def simulate(scene: os.PathLike[str] | str, out_dir: os.PathLike[str] | str, seed: int = 0) -> int:
+    """Renders a scene file into a dataset folder, as ``mrfmap simulate``; returns the frames."""
+
+def build_dataset(dataset: os.PathLike[str] | str, **options: Any) -> Map:
+    """Builds every frame of a dataset folder into one map. Options, as ``mrfmap build``'s:
+    ``resolution`` (required), ``engine`` (``"logodds"``, ``"mrf"``, ``"crm"``),
+    ``max_range``, ``bounds`` ([xmin, ymin, zmin, xmax, ymax, zmax]), ``noise`` (a
+    ``noise.toml``), ``particles``, ``iterations``, ``prior``, ``threads``. Tiled builds:
+    ``mrfmap.distributed.build``."""
+
+def _plan_tiles(dataset: str, **options: Any) -> List[Tuple[Tuple[int, int, int], List[int]]]: ...
+def _tile_estimate(dataset: str, key: Tuple[int, int, int], frames: List[int], **options: Any) -> float: ...
+def _build_tile(dataset: str, out_dir: str, key: Tuple[int, int, int], frames: List[int], **options: Any) -> Dict[str, Any]: ...
+def _write_tile_index(dataset: str, out_dir: str, entries: List[Dict[str, Any]], **options: Any) -> int: ...

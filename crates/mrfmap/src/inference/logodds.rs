@@ -293,8 +293,12 @@ impl Engine for LogOddsEngine {
     fn integrate(&mut self, frame: &Frame) -> Result<()> {
         match (self.params.model, self.params.marking) {
             (SensorModel::HitMiss { .. }, Marking::Project) if Projector::pays_off(frame, self.grid.resolution()) => {
-                let crossed =
-                    self.projector.crossed_voxels(frame, &self.limits, self.grid.resolution(), self.params.keep.as_ref());
+                let crossed = self.projector.crossed_voxels(
+                    frame,
+                    &self.limits,
+                    self.grid.resolution(),
+                    self.params.keep.as_ref(),
+                );
                 self.apply_marks(ScanMarks::of_crossed(crossed));
             }
             _ => self.integrate_rays(&Rays::of_frame(frame)),

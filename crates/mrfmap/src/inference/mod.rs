@@ -29,12 +29,12 @@ pub use crm::{CrmEngine, CrmParams, crm_ray_factors};
 pub use estimate::{BASE_MEMORY, Extent, check_build, estimate_memory, frames_extent, scan_extent};
 pub use logodds::{LogOddsEngine, LogOddsParams, Marking, SensorModel};
 pub use merge::merge;
-pub use tiles::{TileBuild, Tiling, default_margin};
 pub use mrf::{
     Allocation, Budget, DEFAULT_MAX_SWEEPS, DEFAULT_MIN_EVIDENCE, DEFAULT_SWEEPS, DEFAULT_TOLERANCE, KeyframeId,
     KeyframeSelection, MAX_BATCH, MAX_LOG_ODDS, MU_EPS, MrfEngine, MrfParams, RunReport, StepReport, TILE,
     ray_log_messages, ray_messages,
 };
+pub use tiles::{TileBuild, Tiling, default_margin};
 
 use crate::Choice;
 use crate::error::{Error, Result};

@@ -19,7 +19,7 @@ pub use grid::{
 
 pub use ops::{Change, Grid2d, MAX_GRID2D_CELLS, VoxelState};
 pub use region::{Aabb, box_keys};
-pub use tiled::{INDEX_FILE, TileEntry, TileGrid, TileIndex, TileKey, TiledMap};
+pub use tiled::{INDEX_FILE, TileEntry, TileGrid, TileIndex, TileKey, TileTotals, TiledMap};
 
 use std::collections::BTreeMap;
 use std::path::Path;

@@ -223,6 +223,21 @@ impl TileIndex {
     }
 }
 
+/// Sums over a tiled map's index ([`TiledMap::totals`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TileTotals {
+    /// Voxels.
+    pub voxels: u64,
+    /// Voxels above [`super::OCCUPIED_THRESHOLD`].
+    pub occupied: u64,
+    /// Bricks.
+    pub bricks: u64,
+    /// Memory every tile loaded would take (bytes).
+    pub memory_bytes: u64,
+    /// World bounds `[min, max]` of every tile's voxels (none when all are empty).
+    pub bounds: Option<[[f64; 3]; 2]>,
+}
+
 /// A tiled map opened for reading: the index in memory, each tile read when asked.
 #[derive(Clone, Debug)]
 pub struct TiledMap {
@@ -284,23 +299,22 @@ impl TiledMap {
         self.by_key.get(&key).map(|&i| &self.index.tiles[i])
     }
 
-    /// Sums over the index: voxels, occupied voxels, bricks, memory in bytes, and the bounds of
-    /// every tile's voxels (what `mrfmap info` says without reading a tile).
-    pub fn totals(&self) -> (u64, u64, u64, u64, Option<([f64; 3], [f64; 3])>) {
+    /// Sums over the index (what `mrfmap info` says without reading a tile).
+    pub fn totals(&self) -> TileTotals {
         let t = &self.index.tiles;
-        let bounds = t.iter().filter_map(|e| e.bounds).fold(None, |acc: Option<([f64; 3], [f64; 3])>, [lo, hi]| {
+        let bounds = t.iter().filter_map(|e| e.bounds).fold(None, |acc: Option<[[f64; 3]; 2]>, [lo, hi]| {
             Some(match acc {
-                None => (lo, hi),
-                Some((a, b)) => ([0, 1, 2].map(|k| a[k].min(lo[k])), [0, 1, 2].map(|k| b[k].max(hi[k]))),
+                None => [lo, hi],
+                Some([a, b]) => [[0, 1, 2].map(|k| a[k].min(lo[k])), [0, 1, 2].map(|k| b[k].max(hi[k]))],
             })
         });
-        (
-            t.iter().map(|e| e.voxels).sum(),
-            t.iter().map(|e| e.occupied).sum(),
-            t.iter().map(|e| e.bricks).sum(),
-            t.iter().map(|e| e.memory_bytes).sum(),
+        TileTotals {
+            voxels: t.iter().map(|e| e.voxels).sum(),
+            occupied: t.iter().map(|e| e.occupied).sum(),
+            bricks: t.iter().map(|e| e.bricks).sum(),
+            memory_bytes: t.iter().map(|e| e.memory_bytes).sum(),
             bounds,
-        )
+        }
     }
 
     /// A map with the index's header and no voxels.

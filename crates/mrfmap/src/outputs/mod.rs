@@ -39,9 +39,9 @@ pub use octomap::{
 };
 pub use ply::{PlyOptions, PlyVertices, parse_ply, read_ply, write_changes_ply, write_ply};
 pub use query::{
-    BoxAnswer, LazyTiles, LiveEngine, MAX_BOX_VOXELS, MAX_PATH_VOXELS, PointAnswer, QueryOptions, SegmentAnswer, VoxelSource,
-    box_voxel_count, check_path, for_each_in_box, query_box, query_point, query_points, query_polyline, query_segment,
-    query_segments,
+    BoxAnswer, LazyTiles, LiveEngine, MAX_BOX_VOXELS, MAX_PATH_VOXELS, PointAnswer, QueryOptions, SegmentAnswer,
+    VoxelSource, box_voxel_count, check_path, for_each_in_box, query_box, query_point, query_points, query_polyline,
+    query_segment, query_segments,
 };
 pub use render::{Colouring, Up, View, render_grid2d, render_map, slice_map};
 pub use truth::{

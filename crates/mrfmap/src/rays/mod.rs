@@ -211,7 +211,8 @@ pub fn frame_reach(frame: &Frame, limits: &RayLimits, forward_model: bool) -> Op
         .map(|v| {
             let mut acc = empty;
             for ray in rays.row(v) {
-                let seg = if forward_model { limits.forward_model_segment(&ray, noise) } else { limits.segment(&ray, 0.0) };
+                let seg =
+                    if forward_model { limits.forward_model_segment(&ray, noise) } else { limits.segment(&ray, 0.0) };
                 let Some(seg) = seg else { continue };
                 for a in 0..3 {
                     let end = ray.origin[a] + seg.end * ray.dir[a];

@@ -212,9 +212,8 @@ impl PathDef {
         if self.frames < 2 || self.frames > MAX_VIEWS {
             return Err(format!("[path]: frames must be 2 to {MAX_VIEWS}, got {}", self.frames));
         }
-        if !(self.sweep_deg.is_finite() && self.sweep_deg >= 0.0 && self.sweep_deg < 360.0)
-            || !(self.sweep_period > 0.0 && self.sweep_period.is_finite())
-        {
+        let sweep = self.sweep_deg.is_finite() && self.sweep_deg >= 0.0 && self.sweep_deg < 360.0;
+        if !(sweep && self.sweep_period > 0.0 && self.sweep_period.is_finite()) {
             return Err("[path]: need 0 <= sweep_deg < 360 and sweep_period > 0".into());
         }
         let points: Vec<Vector3<f64>> = self.waypoints.iter().map(|w| Vector3::from(*w)).collect();
@@ -493,7 +492,8 @@ target = [1.0, 0.0, 0.0]
         let e = Scene::from_toml(base, Path::new("s.toml")).unwrap_err();
         assert!(e.to_string().contains("no viewpoints"), "{e}");
         // A path: equal steps along the waypoints, looking along the way.
-        let path = format!("{base}[path]\nwaypoints = [[0.0, 0.0, 1.0], [2.0, 0.0, 1.0], [2.0, 3.0, 1.0]]\nframes = 6\n");
+        let path =
+            format!("{base}[path]\nwaypoints = [[0.0, 0.0, 1.0], [2.0, 0.0, 1.0], [2.0, 3.0, 1.0]]\nframes = 6\n");
         let scene = Scene::from_toml(&path, Path::new("s.toml")).unwrap();
         let eyes: Vec<Vector3<f64>> = scene.views.iter().map(|p| p.translation.vector).collect();
         assert!((eyes[1] - Vector3::new(1.0, 0.0, 1.0)).norm() < 1e-12, "{:?}", eyes[1]);
@@ -501,9 +501,17 @@ target = [1.0, 0.0, 0.0]
         let ahead = |p: &Pose| p.rotation * Vector3::z();
         assert!((ahead(&scene.views[0]) - Vector3::x()).norm() < 1e-9);
         assert!((ahead(&scene.views[4]) - Vector3::y()).norm() < 1e-9);
-        let e = Scene::from_toml(&format!("{path}[orbit]\ncenter = [0.0, 0.0, 0.5]\nradius = 2.0\nheight = 1.5\nviews = 4\n"), Path::new("s.toml")).unwrap_err();
+        let e = Scene::from_toml(
+            &format!("{path}[orbit]\ncenter = [0.0, 0.0, 0.5]\nradius = 2.0\nheight = 1.5\nviews = 4\n"),
+            Path::new("s.toml"),
+        )
+        .unwrap_err();
         assert!(e.to_string().contains("one of"), "{e}");
-        let e = Scene::from_toml(&format!("{base}[path]\nwaypoints = [[0.0, 0.0, 1.0]]\nframes = 6\n"), Path::new("s.toml")).unwrap_err();
+        let e = Scene::from_toml(
+            &format!("{base}[path]\nwaypoints = [[0.0, 0.0, 1.0]]\nframes = 6\n"),
+            Path::new("s.toml"),
+        )
+        .unwrap_err();
         assert!(e.to_string().contains("two finite waypoints"), "{e}");
     }
 }

@@ -873,6 +873,17 @@ impl BuildSpec {
         .map_err(py_err)
     }
 
+    /// Refuses frame indices the dataset does not have.
+    fn check_frames(&self, indices: &[usize]) -> PyResult<()> {
+        match indices.iter().find(|&&i| i >= self.dataset.len()) {
+            Some(i) => Err(PyValueError::new_err(format!(
+                "frame {i} is out of range: the dataset has {} frames",
+                self.dataset.len()
+            ))),
+            None => Ok(()),
+        }
+    }
+
     fn frames(&self, indices: Vec<usize>) -> impl Iterator<Item = mrfmap::Result<Frame>> + '_ {
         indices.into_iter().map(|i| self.dataset.frame(i))
     }
@@ -917,7 +928,8 @@ fn _plan_tiles(
     Ok(plan.into_iter().map(|(k, f)| ((k.0[0], k.0[1], k.0[2]), f)).collect())
 }
 
-/// The memory estimate (bytes) of building tile `key` from `frames`.
+/// The memory (bytes) building tile `key` from `frames` adds to a running process: its
+/// estimate without the program's own base.
 #[pyfunction]
 #[pyo3(signature = (dataset, key, frames, **options))]
 fn _tile_estimate(
@@ -930,15 +942,11 @@ fn _tile_estimate(
     let spec = BuildSpec::of(&dataset, &options.cloned().unwrap_or_else(|| PyDict::new(py)))?;
     let tiling = spec.tiling()?;
     let key = mrfmap::map::TileKey([key.0, key.1, key.2]);
-    let config =
-        tiling.tile_config(&spec.config, key).ok_or_else(|| PyValueError::new_err("tile outside the bounds"))?;
-    spec.run(py, || {
-        let step = frames.len().div_ceil(8).max(1);
-        let sampled =
-            frames.iter().step_by(step).map(|&i| spec.dataset.frame(i)).collect::<mrfmap::Result<Vec<_>>>()?;
-        let poses = frames.iter().map(|&i| spec.dataset.frames()[i].pose);
-        Ok(frames_extent(poses, &sampled, &config).map_or(0.0, |e| mrfmap::inference::estimate_memory(&config, &e)))
-    })
+    spec.check_frames(&frames)?;
+    let pose = |i: usize| spec.dataset.frames()[i].pose;
+    let estimate = spec.run(py, || tiling.estimate(&spec.config, key, &frames, pose, |i| spec.dataset.frame(i)))?;
+    // What the build adds to a running process: the estimate without its program base.
+    Ok((estimate - mrfmap::inference::BASE_MEMORY).max(0.0))
 }
 
 /// Builds tile `key` from `frames` into the folder `out_dir`; returns its index entry (a dict)
@@ -956,6 +964,7 @@ fn _build_tile<'py>(
     let spec = BuildSpec::of(&dataset, &options.cloned().unwrap_or_else(|| PyDict::new(py)))?;
     let tiling = spec.tiling()?;
     let key = mrfmap::map::TileKey([key.0, key.1, key.2]);
+    spec.check_frames(&frames)?;
     let (entry, params) = spec.run(py, || tiling.build_into(&out_dir, &spec.config, key, spec.frames(frames)))?;
     let out = PyDict::new(py);
     out.set_item("key", entry.key.to_vec())?;

@@ -12,7 +12,7 @@ use mrfmap::atomic_file::write_atomic;
 use mrfmap::frames::{Frame, NoiseModel, Poly, RangeScan};
 use mrfmap::inference::{
     Allocation, Budget, CrmParams, Engine, EngineConfig, EngineKind, Extent, KeyframeSelection, LogOddsParams, Marking,
-    MrfEngine, MrfParams, Tiling, check_build, estimate_memory, frames_extent, new_engine, scan_extent,
+    MrfEngine, MrfParams, Tiling, check_build, frames_extent, new_engine, scan_extent,
 };
 use mrfmap::map::Aabb;
 use mrfmap::map::{Map, TileKey};
@@ -992,16 +992,10 @@ fn build_tiled(a: &Args, edge: f64) -> Result<()> {
     // Every tile's estimate before the first is built: a refusal comes before any work.
     let mut largest = (0.0, TileKey([0; 3]));
     for (key, frames) in &plan {
-        let tile_config = tiling.tile_config(&config, *key).expect("planned tiles lie within the bounds");
-        let step = frames.len().div_ceil(SAMPLE_FRAMES).max(1);
-        let sampled: Vec<Frame> =
-            frames.iter().step_by(step).map(|&i| cache.get(i).map(|f| (*f).clone())).collect::<mrfmap::Result<_>>()?;
-        let poses = frames.iter().map(|&i| dataset.frames()[i].pose);
-        if let Some(extent) = frames_extent(poses, &sampled, &tile_config) {
-            let estimate = estimate_memory(&tile_config, &extent);
-            if estimate > largest.0 {
-                largest = (estimate, *key);
-            }
+        let pose = |i: usize| dataset.frames()[i].pose;
+        let estimate = tiling.estimate(&config, *key, frames, pose, |i| cache.get(i))?;
+        if estimate > largest.0 {
+            largest = (estimate, *key);
         }
     }
     mrfmap::limits::check_memory(

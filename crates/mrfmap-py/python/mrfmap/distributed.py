@@ -52,10 +52,10 @@ def _status_kib(field: str) -> Optional[int]:
 
 
 def _build_one(source: str, out_dir: str, key: tuple, frames: List[int], options: Dict[str, Any]) -> dict:
-    """One tile, on a worker: its memory estimate checked against the worker's limit, then
-    built and written; returns its index entry, with the estimate and (on Linux) the worker's
-    resident size before the task and its peak during it (the peak is reset first), which
-    the benchmark compares."""
+    """One tile, on a worker: the peak it expects (the worker's resident size now plus the
+    tile's estimate) checked against the worker's limit, then built and written; returns its
+    index entry, with that expected peak and (on Linux) the worker's resident size before the
+    task and its peak during it (the peak is reset first), which the benchmark compares."""
     limit = None
     try:
         from distributed import get_worker
@@ -63,13 +63,14 @@ def _build_one(source: str, out_dir: str, key: tuple, frames: List[int], options
         limit = get_worker().memory_manager.memory_limit
     except (ImportError, ValueError, AttributeError):
         pass
-    needed = _mrfmap._tile_estimate(source, key, frames, **options)
+    # The worker's size now plus what the tile's build adds: the peak this task expects.
+    before = _status_kib("VmRSS")
+    needed = (before or 0) * 1024 + _mrfmap._tile_estimate(source, key, frames, **options)
     if limit and needed > limit:
         raise MemoryError(
-            f"tile {key}: its build would need about {needed / 2**20:.0f} MiB, more than the worker's "
+            f"tile {key}: the worker would need about {needed / 2**20:.0f} MiB to build it, more than its "
             f"limit of {limit / 2**20:.0f} MiB; use smaller tiles, a coarser resolution or workers with more memory"
         )
-    before = _status_kib("VmRSS")
     try:
         with open("/proc/self/clear_refs", "w") as f:
             f.write("5")  # resets the peak resident size (VmHWM) of this process
@@ -138,7 +139,7 @@ def build(
     if own:
         if workers is None:
             workers = max(1, (os.cpu_count() or 1) // max(1, threads_per_task))
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None)
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0")
         client = Client(cluster)
     try:
         futures = [

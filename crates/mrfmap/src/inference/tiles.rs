@@ -30,6 +30,9 @@ use crate::frames::Frame;
 use crate::map::{Aabb, Map, TileEntry, TileGrid, TileIndex, TileKey};
 use crate::rays::frame_reach;
 
+/// Frames decoded for a tile's memory estimate, at most.
+const ESTIMATE_SAMPLES: usize = 8;
+
 /// Most tiles one frame may reach (a frame reaching more is an error: the tiles are far too
 /// small for the sensor's range).
 const MAX_TILES_PER_FRAME: usize = 1 << 16;
@@ -101,6 +104,33 @@ impl Tiling {
             EngineKind::Mrf | EngineKind::Crm => tile.limits.bounds = Some(bounds),
         }
         Some(tile)
+    }
+
+    /// The configuration whose memory estimate ([`super::frames_extent`],
+    /// [`super::estimate_memory`]) is tile `key`'s: bounded to its build box for every engine
+    /// (log-odds traces rays beyond it, but stores nothing there).
+    pub fn estimate_config(&self, config: &EngineConfig, key: TileKey) -> Option<EngineConfig> {
+        let mut tile = self.tile_config(config, key)?;
+        tile.limits.bounds = self.build_box(config, key);
+        Some(tile)
+    }
+
+    /// The memory estimate (bytes) of building tile `key` from the frames `indices`: from
+    /// every frame's pose (`pose`) and at most 8 frames spread over them (`frame` decodes
+    /// one). 0 when the tile lies outside the bounds or sees nothing.
+    pub fn estimate<F: Borrow<Frame>>(
+        &self,
+        config: &EngineConfig,
+        key: TileKey,
+        indices: &[usize],
+        pose: impl Fn(usize) -> crate::frames::Pose,
+        mut frame: impl FnMut(usize) -> Result<F>,
+    ) -> Result<f64> {
+        let Some(config) = self.estimate_config(config, key) else { return Ok(0.0) };
+        let step = indices.len().div_ceil(ESTIMATE_SAMPLES).max(1);
+        let sampled = indices.iter().step_by(step).map(|&i| Ok(frame(i)?.borrow().clone())).collect::<Result<Vec<_>>>()?;
+        let extent = super::frames_extent(indices.iter().map(|&i| pose(i)), &sampled, &config);
+        Ok(extent.map_or(0.0, |e| super::estimate_memory(&config, &e)))
     }
 
     /// The tiles whose build box a frame reaching `reach` can touch.

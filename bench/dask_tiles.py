@@ -34,7 +34,8 @@ def main():
             ratios = [e["rss_peak_kib"] * 1024 / e["estimate_bytes"] for e in s["entries"] if "rss_peak_kib" in e]
             peak = max(e["rss_peak_kib"] for e in s["entries"] if "rss_peak_kib" in e) / 1024
             print(
-                f"run {rep + 1} workers {workers}: {s['seconds']:.1f} s, {s['tiles']} tiles, {s['frames']} frames, "
+                f"run {rep + 1} workers {workers}: {s['seconds']:.1f} s (planning {s['plan_seconds']:.1f} s, cluster start "
+                f"{s['cluster_seconds']:.1f} s), {s['tiles']} tiles, {s['frames']} frames, "
                 f"{s['tile_frames']} tile-frames, {s['voxels']} voxels; worker peak / expected peak per tile: "
                 f"median {statistics.median(ratios):.2f}, min {min(ratios):.2f}, max {max(ratios):.2f}; "
                 f"largest worker peak {peak:.0f} MiB"

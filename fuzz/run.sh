@@ -9,7 +9,7 @@ set -euo pipefail
 here=$(cd "$(dirname "$0")" && pwd)
 secs=${1:-60}
 shift || true
-all="depth_png camera_toml noise_toml scene_toml map_file ply octomap carmen bag_messages"
+all="depth_png camera_toml noise_toml scene_toml tile_index map_file ply octomap carmen bag_messages"
 targets=${*:-$all}
 for t in $targets; do
   case " $all " in *" $t "*) ;; *) echo "no fuzz target $t; the targets: $all" >&2; exit 2 ;; esac

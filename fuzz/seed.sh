@@ -31,6 +31,7 @@ views = 2
 TOML
 "$m" -q simulate "$tmp/scene.toml" "$tmp/data" >/dev/null
 "$m" -q build "$tmp/data" -o "$tmp/m.mrfmap" --resolution 0.1 >/dev/null
+"$m" -q build "$tmp/data" -o "$tmp/tiles" --resolution 0.1 --tile 0.8 >/dev/null
 "$m" -q export "$tmp/m.mrfmap" --ply "$tmp/m.ply" --bt "$tmp/m.bt" --ot "$tmp/m.ot" >/dev/null
 printf 'FLASER 3 1.0 2.0 81.83 0.5 0.5 0.1 0 0 0 1.0 h 1.0\nODOM 0 0 0 0 0 0 1 h 1\n' > "$tmp/log"
 seed() { mkdir -p "$here/corpus/$1"; cp "$2" "$here/corpus/$1/seed-$(basename "$2")"; }
@@ -38,6 +39,7 @@ seed depth_png "$tmp/data/depth/000000.png"
 seed camera_toml "$tmp/data/camera.toml"
 seed noise_toml "$tmp/data/noise.toml"
 seed scene_toml "$tmp/scene.toml"
+seed tile_index "$tmp/tiles/tiles.toml"
 seed map_file "$tmp/m.mrfmap"
 seed ply "$tmp/m.ply"
 seed octomap "$tmp/m.bt"

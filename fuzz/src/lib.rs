@@ -22,6 +22,7 @@ pub fn run(target: &str, data: &[u8]) -> bool {
             }
         }
         "scene_toml" => drop(text.map(|t| mrfmap::source::Scene::from_toml(t, "scene.toml".as_ref()))),
+        "tile_index" => drop(text.map(|t| mrfmap::map::TileIndex::from_toml(t, "tiles.toml".as_ref()))),
         "map_file" => {
             let _ = mrfmap::map::Map::from_bytes(data);
             // The same bytes with a checksum that matches, so the fuzzer gets past it.

@@ -790,8 +790,8 @@ fn simulate(py: Python<'_>, scene: PathBuf, out_dir: PathBuf, seed: u64) -> PyRe
 struct BuildSpec {
     dataset: mrfmap::source::Dataset,
     config: EngineConfig,
-    /// Tile edge and margin, for tiled builds.
-    tile: Option<(f64, Option<f64>)>,
+    /// Tile edge, height and margin, for tiled builds.
+    tile: Option<(f64, Option<f64>, Option<f64>)>,
     /// Worker threads (None: all cores).
     threads: Option<usize>,
 }
@@ -850,14 +850,16 @@ impl BuildSpec {
         config.crm.particles = get(spec, "particles")?.unwrap_or(config.crm.particles);
         config.mrf.iterations = get(spec, "iterations")?.unwrap_or(config.mrf.iterations);
         config.mrf.prior = get(spec, "prior")?.unwrap_or(config.mrf.prior);
-        let tile = get::<f64>(spec, "tile")?.map(|t| Ok::<_, PyErr>((t, get(spec, "margin")?))).transpose()?;
+        let tile = get::<f64>(spec, "tile")?
+            .map(|t| Ok::<_, PyErr>((t, get(spec, "tile_height")?, get(spec, "margin")?)))
+            .transpose()?;
         Ok(BuildSpec { dataset, config, tile, threads: get(spec, "threads")? })
     }
 
     fn tiling(&self) -> PyResult<mrfmap::inference::Tiling> {
-        let (edge, margin) =
+        let (edge, height, margin) =
             self.tile.ok_or_else(|| PyValueError::new_err("tile (the tile edge in metres) is required"))?;
-        mrfmap::inference::Tiling::new(&self.config, edge, margin).map_err(py_err)
+        mrfmap::inference::Tiling::new(&self.config, edge, height, margin).map_err(py_err)
     }
 
     /// Runs `work` on `threads` threads (all cores without), without the GIL.
@@ -922,8 +924,8 @@ fn _plan_tiles(
     let spec = BuildSpec::of(&dataset, &options.cloned().unwrap_or_else(|| PyDict::new(py)))?;
     let tiling = spec.tiling()?;
     let plan = spec.run(py, || {
-        let frames = (0..spec.dataset.len()).map(|i| spec.dataset.frame(i).map(|f| (i, f)));
-        tiling.plan(&spec.config, frames)
+        let indices: Vec<usize> = (0..spec.dataset.len()).collect();
+        tiling.plan(&spec.config, &indices, |i| spec.dataset.frame(i))
     })?;
     Ok(plan.into_iter().map(|(k, f)| ((k.0[0], k.0[1], k.0[2]), f)).collect())
 }

@@ -490,6 +490,10 @@ pub struct Args {
     /// reach it, so memory holds one tile at a time (dataset folders).
     #[arg(long, value_parser = super::positive)]
     tile: Option<f64>,
+    /// With --tile: also cut tiles in z, into layers of this height (metres, whole bricks);
+    /// without it tiles are columns through every height (what a building or a campus needs).
+    #[arg(long, requires = "tile", value_parser = super::positive)]
+    tile_height: Option<f64>,
     /// With --tile: metres around each tile that its build maps too, then cuts away (default
     /// 1 m for mrf and crm; 0 for logodds, whose tiles equal the map built whole anyway).
     #[arg(long, requires = "tile", value_parser = super::non_negative)]
@@ -972,17 +976,14 @@ fn build_tiled(a: &Args, edge: f64) -> Result<()> {
         bail!("{}: --tile writes a folder of tiles, and this is a file", a.output.display());
     }
     let config = a.options.config(a.engine, a.resolution)?;
-    let tiling = Tiling::new(&config, edge, a.tile_margin)?;
+    let tiling = Tiling::new(&config, edge, a.tile_height, a.tile_margin)?;
     let dataset = a.options.open(&a.dataset)?;
     let indices = select_frames(dataset.len(), &a.frames, &a.exclude)?;
     let bar = crate::progress::bar(Some(indices.len()), "planning");
-    let plan = tiling.plan(
-        &config,
-        indices.iter().map(|&i| {
-            bar.inc(1);
-            dataset.frame(i).map(|f| (i, f))
-        }),
-    )?;
+    let plan = tiling.plan(&config, &indices, |i| {
+        bar.inc(1);
+        dataset.frame(i)
+    })?;
     bar.finish_and_clear();
     if plan.is_empty() {
         bail!("{}: no frame reaches any tile (no valid depth within the bounds)", a.dataset.display());

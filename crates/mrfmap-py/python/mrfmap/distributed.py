@@ -91,6 +91,7 @@ def build(
     resolution: float,
     engine: str = "logodds",
     client: Optional[Any] = None,
+    tile_height: Optional[float] = None,
     margin: Optional[float] = None,
     max_range: Optional[float] = None,
     bounds: Optional[Sequence[float]] = None,
@@ -104,7 +105,8 @@ def build(
     progress: bool = True,
 ) -> Dict[str, Any]:
     """Builds the dataset folder ``source`` into the tiled map ``out_dir``, one Dask task per
-    tile of ``tile`` metres (a whole number of 8-voxel bricks), and returns a summary
+    tile of ``tile`` metres in x and y (a whole number of 8-voxel bricks; columns through every
+    height, or layers of ``tile_height`` metres), and returns a summary
     (``tiles``, ``voxels``, ``occupied``, ``frames``, ``tile_frames``, ``seconds``).
 
     ``engine``, ``resolution``, ``max_range``, ``bounds`` (``[xmin, ymin, zmin, xmax, ymax,
@@ -113,11 +115,20 @@ def build(
     too (default 0 for log-odds, whose tiles equal the map built whole, 1 m for MRF and CRM).
     ``client``: a ``distributed.Client`` (default: a ``LocalCluster`` of ``workers`` worker
     processes, default one per core). ``threads_per_task``: threads each tile's build uses.
-    The summary's ``entries`` are the tiles' index entries with their memory estimate and,
+    The summary's ``plan_seconds`` and ``cluster_seconds`` are the time spent planning and
+    starting a local cluster (0 with a client); its ``entries`` are the tiles' index entries with their memory estimate and,
     on Linux, their worker's resident size before the task and peak during it.
     """
     options: Dict[str, Any] = {"tile": tile, "resolution": resolution, "engine": engine}
-    extra = dict(margin=margin, max_range=max_range, noise=noise, particles=particles, iterations=iterations, prior=prior)
+    extra = dict(
+        tile_height=tile_height,
+        margin=margin,
+        max_range=max_range,
+        noise=noise,
+        particles=particles,
+        iterations=iterations,
+        prior=prior,
+    )
     options.update({k: v for k, v in extra.items() if v is not None})
     if bounds is not None:
         options["bounds"] = list(bounds)
@@ -130,6 +141,7 @@ def build(
         raise ImportError("mrfmap.distributed needs Dask: pip install 'mrfmap[distributed]'") from e
     started = time.monotonic()
     tiles = plan(source, **options)
+    planned = time.monotonic()
     if not tiles:
         raise ValueError(f"{source}: no frame reaches any tile (no valid depth within the bounds)")
     os.makedirs(out_dir, exist_ok=True)
@@ -141,6 +153,7 @@ def build(
             workers = max(1, (os.cpu_count() or 1) // max(1, threads_per_task))
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0")
         client = Client(cluster)
+    ready = time.monotonic()
     try:
         futures = [
             client.submit(
@@ -153,6 +166,8 @@ def build(
                 key=f"mrfmap-tile-{key[0]}_{key[1]}_{key[2]}-{os.path.abspath(out_dir)}",
                 retries=retries,
                 pure=False,
+                # Largest tiles first, so that the last tasks are short (less idle at the end).
+                priority=len(frames),
             )
             for key, frames in tiles
         ]
@@ -171,6 +186,8 @@ def build(
         "frames": len({f for _, frames in tiles for f in frames}),
         "tile_frames": sum(len(frames) for _, frames in tiles),
         "seconds": time.monotonic() - started,
+        "plan_seconds": planned - started,
+        "cluster_seconds": ready - planned,
         "entries": entries,
     }
 
@@ -186,6 +203,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     b.add_argument("--resolution", type=float, required=True)
     b.add_argument("--engine", default="logodds", choices=["logodds", "mrf", "crm"])
     b.add_argument("--scheduler", help="address of a running Dask scheduler (default: a local cluster)")
+    b.add_argument("--tile-height", type=float, help="also cut tiles in z (default: columns)")
     b.add_argument("--margin", type=float)
     b.add_argument("--max-range", type=float)
     b.add_argument("--bounds", help="XMIN,YMIN,ZMIN,XMAX,YMAX,ZMAX")
@@ -211,6 +229,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             resolution=a.resolution,
             engine=a.engine,
             client=client,
+            tile_height=a.tile_height,
             margin=a.margin,
             max_range=a.max_range,
             bounds=bounds,

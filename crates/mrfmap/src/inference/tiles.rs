@@ -3,8 +3,8 @@
 //! Tiles are independent, so they can be built one after another in a small process, or on
 //! many machines at once (the Python package's `mrfmap.distributed`).
 //!
-//! - [`Tiling::plan`] reads each frame once and lists, per tile, the frames whose rays can
-//!   reach it ([`frame_reach`]: the box of the camera and every ray's end).
+//! - [`Tiling::plan`] reads each frame once and lists, per tile, the frames some ray of which
+//!   crosses it ([`Tiling::tiles_reached`]).
 //! - [`Tiling::build`] builds one tile: the tile's frames in order into an engine that keeps
 //!   only the tile's box grown by the margin, then only the tile's bricks kept.
 //!
@@ -28,7 +28,7 @@ use super::{EngineConfig, EngineKind, new_engine};
 use crate::error::{Error, Result};
 use crate::frames::Frame;
 use crate::map::{Aabb, Map, TileEntry, TileGrid, TileIndex, TileKey};
-use crate::rays::frame_reach;
+use crate::rays::{frame_crosses, frame_reach};
 
 /// Frames decoded for a tile's memory estimate, at most.
 const ESTIMATE_SAMPLES: usize = 8;
@@ -66,10 +66,11 @@ pub struct TileBuild {
 }
 
 impl Tiling {
-    /// Tiles of `edge` metres for maps at `config`'s resolution, built with `margin` metres
-    /// around them (default [`default_margin`]).
-    pub fn new(config: &EngineConfig, edge: f64, margin: Option<f64>) -> Result<Self> {
-        let grid = TileGrid::new(edge, config.resolution)?;
+    /// Tiles of `edge` metres in x and y (columns, or layers of `height` metres) for maps at
+    /// `config`'s resolution, built with `margin` metres around them (default
+    /// [`default_margin`]).
+    pub fn new(config: &EngineConfig, edge: f64, height: Option<f64>, margin: Option<f64>) -> Result<Self> {
+        let grid = TileGrid::new(edge, config.resolution)?.with_height(height)?;
         let margin = margin.unwrap_or_else(|| default_margin(config.kind));
         if !(margin.is_finite() && margin >= 0.0) {
             return Err(Error::Invalid(format!("the tile margin must be 0 or more metres, got {margin}")));
@@ -128,35 +129,50 @@ impl Tiling {
     ) -> Result<f64> {
         let Some(config) = self.estimate_config(config, key) else { return Ok(0.0) };
         let step = indices.len().div_ceil(ESTIMATE_SAMPLES).max(1);
-        let sampled = indices.iter().step_by(step).map(|&i| Ok(frame(i)?.borrow().clone())).collect::<Result<Vec<_>>>()?;
+        let sampled =
+            indices.iter().step_by(step).map(|&i| Ok(frame(i)?.borrow().clone())).collect::<Result<Vec<_>>>()?;
         let extent = super::frames_extent(indices.iter().map(|&i| pose(i)), &sampled, &config);
         Ok(extent.map_or(0.0, |e| super::estimate_memory(&config, &e)))
     }
 
-    /// The tiles whose build box a frame reaching `reach` can touch.
-    pub fn tiles_reached(&self, config: &EngineConfig, reach: &Aabb) -> Result<Vec<TileKey>> {
-        // A voxel more than the margin: a ray touching a face of the box still counts.
+    /// The tiles whose build box (grown by a voxel, so that a ray along a face counts) some
+    /// ray of `frame` crosses: the tiles the box of its rays ([`frame_reach`]) overlaps, then
+    /// each tested against every ray ([`frame_crosses`]).
+    pub fn tiles_reached(&self, config: &EngineConfig, frame: &Frame) -> Result<Vec<TileKey>> {
+        let forward_model = config.kind != EngineKind::LogOdds;
+        let Some(reach) = frame_reach(frame, &config.limits, forward_model) else { return Ok(Vec::new()) };
         let pad = self.margin + self.grid.resolution();
         let grown = Aabb { min: reach.min.map(|x| x - pad), max: reach.max.map(|x| x + pad) };
         let keys = self.grid.overlapping(&grown, MAX_TILES_PER_FRAME).map_err(|e| {
             Error::Invalid(format!("{e}: one frame reaches that many tiles; use larger tiles or a --max-range"))
         })?;
-        Ok(keys.into_iter().filter(|k| self.build_box(config, *k).is_some()).collect())
+        let r = self.grid.resolution();
+        let (keys, boxes): (Vec<TileKey>, Vec<Aabb>) = keys
+            .into_iter()
+            .filter_map(|k| {
+                let b = self.build_box(config, k)?;
+                Some((k, Aabb { min: b.min.map(|x| x - r), max: b.max.map(|x| x + r) }))
+            })
+            .unzip();
+        let crossed = frame_crosses(frame, &config.limits, forward_model, &boxes);
+        Ok(keys.into_iter().zip(crossed).filter_map(|(k, c)| c.then_some(k)).collect())
     }
 
-    /// Which frames reach which tile: each frame of `frames` (with its index) read once.
-    /// Frames without a valid pixel reach nothing.
+    /// Which frames reach which tile, each frame list in index order: every frame of
+    /// `indices` read once (`frame` reads one; frames are read in parallel, as many at once
+    /// as there are threads). Frames without a valid pixel reach nothing.
     pub fn plan(
         &self,
         config: &EngineConfig,
-        frames: impl Iterator<Item = Result<(usize, Frame)>>,
+        indices: &[usize],
+        frame: impl Fn(usize) -> Result<Frame> + Sync,
     ) -> Result<BTreeMap<TileKey, Vec<usize>>> {
+        use rayon::prelude::*;
+        let reached: Vec<(usize, Vec<TileKey>)> =
+            indices.par_iter().map(|&i| Ok((i, self.tiles_reached(config, &frame(i)?)?))).collect::<Result<_>>()?;
         let mut plan: BTreeMap<TileKey, Vec<usize>> = BTreeMap::new();
-        let forward_model = config.kind != EngineKind::LogOdds;
-        for frame in frames {
-            let (index, frame) = frame?;
-            let Some(reach) = frame_reach(&frame, &config.limits, forward_model) else { continue };
-            for key in self.tiles_reached(config, &reach)? {
+        for (index, keys) in reached {
+            for key in keys {
                 plan.entry(key).or_default().push(index);
             }
         }
@@ -242,7 +258,7 @@ mod tests {
             tiles_equal_whole(&config);
         }
         let config = EngineConfig::new(EngineKind::LogOdds, 0.1);
-        assert!(Tiling::new(&config, 1.6, Some(-1.0)).unwrap_err().to_string().contains("margin"));
+        assert!(Tiling::new(&config, 1.6, None, Some(-1.0)).unwrap_err().to_string().contains("margin"));
     }
 
     fn tiles_equal_whole(config: &EngineConfig) {
@@ -258,8 +274,9 @@ mod tests {
             whole.integrate(f).unwrap();
         }
         let whole = whole.map();
-        let tiling = Tiling::new(&config, 1.6, None).unwrap();
-        let plan = tiling.plan(&config, frames.iter().cloned().map(|f| Ok((f.index, f)))).unwrap();
+        let tiling = Tiling::new(&config, 1.6, Some(1.6), None).unwrap();
+        let indices: Vec<usize> = (0..frames.len()).collect();
+        let plan = tiling.plan(&config, &indices, |i| Ok(frames[i].clone())).unwrap();
         assert!(plan.len() >= 4, "{} tiles", plan.len());
         let mut union = Map::new("logodds", 0.1).unwrap();
         for (key, indices) in &plan {
@@ -277,7 +294,7 @@ mod tests {
     fn bounds_cut_tiles() {
         let mut config = EngineConfig::new(EngineKind::LogOdds, 0.1);
         config.limits.bounds = Some(Aabb::new([0.0, 0.0, 0.0], [1.0, 1.0, 1.0]).unwrap());
-        let tiling = Tiling::new(&config, 0.8, None).unwrap();
+        let tiling = Tiling::new(&config, 0.8, Some(0.8), None).unwrap();
         assert!(tiling.build_box(&config, TileKey([5, 0, 0])).is_none());
         let b = tiling.build_box(&config, TileKey([1, 0, 0])).unwrap();
         assert_eq!((b.min[0], b.max[0]), (0.8, 1.0));

@@ -4,12 +4,14 @@
 //!
 //! ```text
 //! MAP/tiles.toml          the index (TOML): format, version, engine, resolution, tile edge,
-//!                         has_variance, params, and per tile its key, file and counts
+//!                         tile height (when tiles are not columns), has_variance, params,
+//!                         and per tile its key, file and counts
 //! MAP/tile_X_Y_Z.mrfmap   the voxels of tile (X, Y, Z), an ordinary `.mrfmap` file
 //! ```
 //!
-//! Tile `(X, Y, Z)` holds the voxels whose keys divided by the tile's edge in voxels (rounded
-//! down) are `(X, Y, Z)`; tiles are whole bricks, so a brick belongs to exactly one tile and
+//! Tiles are columns by default: tile `(X, Y, 0)` holds the voxels whose x and y keys divided
+//! by the tile's edge in voxels (rounded down) are `X` and `Y`, at every height; with a tile
+//! height, `Z` is the z key divided by it likewise. Tiles are whole bricks, so a brick belongs to exactly one tile and
 //! tiles stitch by moving bricks ([`TiledMap::load`]). The index is written last, atomically:
 //! a folder without one is not a map. [`TileGrid`] is the geometry; [`TiledMap`] reads the
 //! index at once and the tiles only when asked ([`TiledMap::load_tile`]).
@@ -32,40 +34,64 @@ const VERSION: u32 = 1;
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
 pub struct TileKey(pub [i32; 3]);
 
-/// How space is cut into tiles: cubes of `edge_voxels` voxels (a whole number of bricks) from
-/// the origin.
+/// How space is cut into tiles: squares of `edge_voxels` voxels (a whole number of bricks)
+/// from the origin in x and y, and either columns through every height or layers of
+/// `height_voxels` in z.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct TileGrid {
     resolution: f64,
     edge_voxels: i32,
+    height_voxels: Option<i32>,
+}
+
+/// Half the height of a column tile's box (m): far beyond any map, finite for box arithmetic.
+const COLUMN_HALF_HEIGHT: f64 = 1e6;
+
+/// `length` metres as a whole number of bricks of voxel edge `resolution` (what tile edges must
+/// be), or an error naming `what` and the nearest lengths that are.
+fn whole_bricks(what: &str, length: f64, resolution: f64) -> Result<i32> {
+    let brick = BRICK_EDGE as f64 * resolution;
+    let bricks = (length / brick).round();
+    let whole = length.is_finite() && bricks >= 1.0 && (bricks * brick - length).abs() <= 1e-6 * length;
+    if !whole || bricks * BRICK_EDGE as f64 > (1 << 24) as f64 {
+        let below = (length / brick).floor().max(1.0) * brick;
+        return Err(Error::Invalid(format!(
+            "a tile {what} must be a whole number of bricks (8 voxels = {brick} m at {resolution} m), got {length}; \
+             e.g. {} or {}",
+            round_metres(below),
+            round_metres(below + brick)
+        )));
+    }
+    Ok(bricks as i32 * BRICK_EDGE)
 }
 
 impl TileGrid {
-    /// Tiles of edge `edge` metres in a grid of voxel edge `resolution`. The edge must be a
-    /// whole number of bricks (8 voxels) so that tiles stitch brick by brick; the error names
-    /// the nearest edges that are.
+    /// Column tiles of edge `edge` metres (through every height) in a grid of voxel edge
+    /// `resolution`. The edge must be a whole number of bricks (8 voxels) so that tiles stitch
+    /// brick by brick; the error names the nearest edges that are.
     ///
     /// ```
     /// use mrfmap::map::{TileGrid, TileKey, VoxelKey};
     /// let grid = TileGrid::new(10.0, 0.05).unwrap();
-    /// assert_eq!(grid.tile_of(VoxelKey([199, -1, 0])), TileKey([0, -1, 0]));
+    /// assert_eq!(grid.tile_of(VoxelKey([199, -1, -7])), TileKey([0, -1, 0]));
+    /// let cubes = grid.with_height(Some(10.0)).unwrap();
+    /// assert_eq!(cubes.tile_of(VoxelKey([199, -1, -7])), TileKey([0, -1, -1]));
     /// assert!(TileGrid::new(10.0, 0.03).unwrap_err().to_string().contains("9.84"));
     /// ```
     pub fn new(edge: f64, resolution: f64) -> Result<Self> {
         super::check_resolution(resolution)?;
-        let brick = BRICK_EDGE as f64 * resolution;
-        let bricks = (edge / brick).round();
-        let whole = edge.is_finite() && bricks >= 1.0 && (bricks * brick - edge).abs() <= 1e-6 * edge;
-        if !whole || bricks * BRICK_EDGE as f64 > (1 << 24) as f64 {
-            let below = (edge / brick).floor().max(1.0) * brick;
-            return Err(Error::Invalid(format!(
-                "a tile edge must be a whole number of bricks (8 voxels = {brick} m at {resolution} m), got {edge}; \
-                 e.g. {} or {}",
-                round_metres(below),
-                round_metres(below + brick)
-            )));
-        }
-        Ok(TileGrid { resolution, edge_voxels: bricks as i32 * BRICK_EDGE })
+        Ok(TileGrid { resolution, edge_voxels: whole_bricks("edge", edge, resolution)?, height_voxels: None })
+    }
+
+    /// The same tiles cut into layers of `height` metres in z too (`None`: columns).
+    pub fn with_height(self, height: Option<f64>) -> Result<Self> {
+        let height_voxels = height.map(|h| whole_bricks("height", h, self.resolution)).transpose()?;
+        Ok(TileGrid { height_voxels, ..self })
+    }
+
+    /// Tile height in metres (`None`: columns through every height).
+    pub fn height(&self) -> Option<f64> {
+        self.height_voxels.map(|h| h as f64 * self.resolution)
     }
 
     /// Voxel edge in metres.
@@ -81,7 +107,12 @@ impl TileGrid {
     /// The tile holding voxel `key`.
     #[inline]
     pub fn tile_of(&self, key: VoxelKey) -> TileKey {
-        TileKey(key.0.map(|k| k.div_euclid(self.edge_voxels)))
+        let [x, y, z] = key.0;
+        TileKey([
+            x.div_euclid(self.edge_voxels),
+            y.div_euclid(self.edge_voxels),
+            self.height_voxels.map_or(0, |h| z.div_euclid(h)),
+        ])
     }
 
     /// The tile holding brick `key`.
@@ -92,7 +123,12 @@ impl TileGrid {
     /// The tile's box in world coordinates.
     pub fn bounds(&self, tile: TileKey) -> Aabb {
         let edge = self.edge();
-        Aabb { min: tile.0.map(|t| t as f64 * edge), max: tile.0.map(|t| (t + 1) as f64 * edge) }
+        let [x, y, z] = tile.0.map(|t| t as f64);
+        let (z0, z1) = match self.height() {
+            Some(h) => (z * h, (z + 1.0) * h),
+            None => (-COLUMN_HALF_HEIGHT, COLUMN_HALF_HEIGHT),
+        };
+        Aabb { min: [x * edge, y * edge, z0], max: [(x + 1.0) * edge, (y + 1.0) * edge, z1] }
     }
 
     /// The tiles holding a voxel that overlaps `region`, in key order (at most `limit` of
@@ -159,8 +195,11 @@ pub struct TileIndex {
     pub engine: String,
     /// Voxel edge in metres.
     pub resolution: f64,
-    /// Tile edge in metres.
+    /// Tile edge in x and y (metres).
     pub tile_edge: f64,
+    /// Tile height in z (metres); none: tiles are columns through every height.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tile_height: Option<f64>,
     /// True when the tiles' variances are meaningful.
     pub has_variance: bool,
     /// Parameters of the build, as a map file's.
@@ -172,6 +211,34 @@ pub struct TileIndex {
 }
 
 impl TileIndex {
+    /// Parses and checks an index (`origin` names the file in errors): its format and version,
+    /// a tile grid that is whole bricks, file names inside the folder, each key once.
+    pub fn from_toml(text: &str, origin: &Path) -> Result<Self> {
+        let index: TileIndex = crate::error::parse_toml(text, origin)?;
+        let bad = |m: String| Error::file(origin, m);
+        if index.format != FORMAT || index.version != VERSION {
+            return Err(bad(format!(
+                "not a tile index of this version (format {:?} version {}; this build reads {FORMAT:?} version \
+                 {VERSION})",
+                index.format, index.version
+            )));
+        }
+        TileGrid::new(index.tile_edge, index.resolution)
+            .and_then(|g| g.with_height(index.tile_height))
+            .map_err(|e| bad(e.to_string()))?;
+        let mut keys = std::collections::BTreeSet::new();
+        for t in &index.tiles {
+            let plain = Path::new(&t.file).file_name().is_some_and(|n| n == t.file.as_str()) && t.file != "..";
+            if !plain {
+                return Err(bad(format!("tile {:?}: file {:?} is not a name inside the map's folder", t.key, t.file)));
+            }
+            if !keys.insert(t.key) {
+                return Err(bad(format!("tile {:?} is listed twice", t.key)));
+            }
+        }
+        Ok(index)
+    }
+
     /// An index of no tiles yet for maps of `engine` cut by `grid`.
     pub fn new(engine: &str, grid: &TileGrid, has_variance: bool, params: BTreeMap<String, String>) -> Self {
         TileIndex {
@@ -180,6 +247,7 @@ impl TileIndex {
             engine: engine.into(),
             resolution: grid.resolution(),
             tile_edge: grid.edge(),
+            tile_height: grid.height(),
             has_variance,
             params,
             tiles: Vec::new(),
@@ -256,26 +324,11 @@ impl TiledMap {
     /// Opens the tiled map in folder `dir`: reads and checks its index (not its tiles).
     pub fn open(dir: &Path) -> Result<Self> {
         let path = dir.join(INDEX_FILE);
-        let index: TileIndex = crate::error::parse_toml(&crate::error::read_text(&path)?, &path)?;
-        let bad = |m: String| Error::file(&path, m);
-        if index.format != FORMAT || index.version != VERSION {
-            return Err(bad(format!(
-                "not a tile index of this version (format {:?} version {}; this build reads {FORMAT:?} version \
-                 {VERSION})",
-                index.format, index.version
-            )));
-        }
-        let grid = TileGrid::new(index.tile_edge, index.resolution).map_err(|e| bad(e.to_string()))?;
-        let mut by_key = BTreeMap::new();
-        for (i, t) in index.tiles.iter().enumerate() {
-            let plain = Path::new(&t.file).file_name().is_some_and(|n| n == t.file.as_str()) && t.file != "..";
-            if !plain {
-                return Err(bad(format!("tile {:?}: file {:?} is not a name inside the map's folder", t.key, t.file)));
-            }
-            if by_key.insert(TileKey(t.key), i).is_some() {
-                return Err(bad(format!("tile {:?} is listed twice", t.key)));
-            }
-        }
+        let index = TileIndex::from_toml(&crate::error::read_text(&path)?, &path)?;
+        let grid = TileGrid::new(index.tile_edge, index.resolution)
+            .and_then(|g| g.with_height(index.tile_height))
+            .expect("checked by from_toml");
+        let by_key = index.tiles.iter().enumerate().map(|(i, t)| (TileKey(t.key), i)).collect();
         Ok(TiledMap { dir: dir.to_path_buf(), index, grid, by_key })
     }
 

@@ -232,6 +232,36 @@ pub fn frame_reach(frame: &Frame, limits: &RayLimits, forward_model: bool) -> Op
     Aabb::new(lo, [0, 1, 2].map(|a| if hi[a] > lo[a] { hi[a] } else { lo[a] + 1e-9_f64.max(lo[a].abs() * 1e-12) })).ok()
 }
 
+/// Which of `boxes` some ray of `frame` crosses within `limits` ([`frame_reach`]'s segments):
+/// the exact test behind the box one, for the boxes that box overlaps.
+pub fn frame_crosses(frame: &Frame, limits: &RayLimits, forward_model: bool, boxes: &[Aabb]) -> Vec<bool> {
+    let default_noise;
+    let noise = match &frame.noise {
+        Some(n) => n.as_ref(),
+        None => {
+            default_noise = crate::frames::default_noise_model();
+            &default_noise
+        }
+    };
+    let rays = FrameRays::new(frame);
+    let none = || vec![false; boxes.len()];
+    (0..rays.rows())
+        .into_par_iter()
+        .map(|v| {
+            let mut hit = none();
+            for ray in rays.row(v) {
+                let seg =
+                    if forward_model { limits.forward_model_segment(&ray, noise) } else { limits.segment(&ray, 0.0) };
+                let Some(seg) = seg else { continue };
+                for (h, b) in hit.iter_mut().zip(boxes) {
+                    *h = *h || b.clip(ray.origin, ray.dir, seg.start, seg.end).is_some();
+                }
+            }
+            hit
+        })
+        .reduce(none, |a, b| a.iter().zip(&b).map(|(x, y)| *x || *y).collect())
+}
+
 /// Ray generator for a range scan: beams in order, in rows of [`ScanRays::ROW`] beams (the
 /// unit of parallel work).
 pub struct ScanRays<'a> {

@@ -189,12 +189,17 @@ impl<'a> FrameRays<'a> {
     }
 }
 
-/// A box that every ray of `frame` stays inside within `limits`: the camera and each valid
-/// pixel's segment end (the forward-model engines' segments, 3 std past the surface, when
-/// `forward_model` is true; the frame's noise model or the default), or `None` when no pixel
-/// has a segment. Rays are straight lines from the camera, so a box holding the camera and
-/// every end holds every ray: what decides which tiles of a tiled map a frame can touch.
-pub fn frame_reach(frame: &Frame, limits: &RayLimits, forward_model: bool) -> Option<Aabb> {
+/// Folds every valid pixel's segment within `limits` (the forward-model engines' segments, 3
+/// std past the surface, when `forward_model` is true; the frame's noise model or the
+/// default): rows in parallel, each into its own `empty()` with `visit`, then merged.
+fn fold_segments<A: Send>(
+    frame: &Frame,
+    limits: &RayLimits,
+    forward_model: bool,
+    empty: impl Fn() -> A + Sync + Send,
+    visit: impl Fn(&mut A, &PixelRay, &Segment) + Sync + Send,
+    merge: impl Fn(A, A) -> A + Sync + Send,
+) -> A {
     let default_noise;
     let noise = match &frame.noise {
         Some(n) => n.as_ref(),
@@ -204,25 +209,42 @@ pub fn frame_reach(frame: &Frame, limits: &RayLimits, forward_model: bool) -> Op
         }
     };
     let rays = FrameRays::new(frame);
-    let (_, origin) = pose_parts(&frame.pose);
-    let empty = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
-    let (lo, hi) = (0..rays.rows())
+    (0..rays.rows())
         .into_par_iter()
         .map(|v| {
-            let mut acc = empty;
+            let mut acc = empty();
             for ray in rays.row(v) {
                 let seg =
                     if forward_model { limits.forward_model_segment(&ray, noise) } else { limits.segment(&ray, 0.0) };
-                let Some(seg) = seg else { continue };
-                for a in 0..3 {
-                    let end = ray.origin[a] + seg.end * ray.dir[a];
-                    acc.0[a] = acc.0[a].min(end);
-                    acc.1[a] = acc.1[a].max(end);
+                if let Some(seg) = seg {
+                    visit(&mut acc, &ray, &seg);
                 }
             }
             acc
         })
-        .reduce(|| empty, |a, b| ([0, 1, 2].map(|k| a.0[k].min(b.0[k])), [0, 1, 2].map(|k| a.1[k].max(b.1[k]))));
+        .reduce(&empty, merge)
+}
+
+/// A box that every ray of `frame` stays inside within `limits`: the camera and each valid
+/// pixel's segment end ([`fold_segments`]' segments), or `None` when no pixel has a segment.
+/// Rays are straight lines from the camera, so a box holding the camera and every end holds
+/// every ray: what decides which tiles of a tiled map a frame can touch.
+pub fn frame_reach(frame: &Frame, limits: &RayLimits, forward_model: bool) -> Option<Aabb> {
+    let (_, origin) = pose_parts(&frame.pose);
+    let (lo, hi) = fold_segments(
+        frame,
+        limits,
+        forward_model,
+        || ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]),
+        |acc, ray, seg| {
+            for a in 0..3 {
+                let end = ray.origin[a] + seg.end * ray.dir[a];
+                acc.0[a] = acc.0[a].min(end);
+                acc.1[a] = acc.1[a].max(end);
+            }
+        },
+        |a, b| ([0, 1, 2].map(|k| a.0[k].min(b.0[k])), [0, 1, 2].map(|k| a.1[k].max(b.1[k]))),
+    );
     if !lo[0].is_finite() {
         return None;
     }
@@ -235,31 +257,18 @@ pub fn frame_reach(frame: &Frame, limits: &RayLimits, forward_model: bool) -> Op
 /// Which of `boxes` some ray of `frame` crosses within `limits` ([`frame_reach`]'s segments):
 /// the exact test behind the box one, for the boxes that box overlaps.
 pub fn frame_crosses(frame: &Frame, limits: &RayLimits, forward_model: bool, boxes: &[Aabb]) -> Vec<bool> {
-    let default_noise;
-    let noise = match &frame.noise {
-        Some(n) => n.as_ref(),
-        None => {
-            default_noise = crate::frames::default_noise_model();
-            &default_noise
-        }
-    };
-    let rays = FrameRays::new(frame);
-    let none = || vec![false; boxes.len()];
-    (0..rays.rows())
-        .into_par_iter()
-        .map(|v| {
-            let mut hit = none();
-            for ray in rays.row(v) {
-                let seg =
-                    if forward_model { limits.forward_model_segment(&ray, noise) } else { limits.segment(&ray, 0.0) };
-                let Some(seg) = seg else { continue };
-                for (h, b) in hit.iter_mut().zip(boxes) {
-                    *h = *h || b.clip(ray.origin, ray.dir, seg.start, seg.end).is_some();
-                }
+    fold_segments(
+        frame,
+        limits,
+        forward_model,
+        || vec![false; boxes.len()],
+        |hit, ray, seg| {
+            for (h, b) in hit.iter_mut().zip(boxes) {
+                *h = *h || b.clip(ray.origin, ray.dir, seg.start, seg.end).is_some();
             }
-            hit
-        })
-        .reduce(none, |a, b| a.iter().zip(&b).map(|(x, y)| *x || *y).collect())
+        },
+        |a, b| a.iter().zip(&b).map(|(x, y)| *x || *y).collect(),
+    )
 }
 
 /// Ray generator for a range scan: beams in order, in rows of [`ScanRays::ROW`] beams (the

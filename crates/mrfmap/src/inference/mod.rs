@@ -12,7 +12,8 @@
 //! - [`CrmEngine`]: confidence-rich mapping, a pdf over occupancy per voxel (mean and
 //!   variance) updated through the sensor cause model (docs/ALGORITHMS.md 5.2).
 //!
-//! Log-odds and CRM also take range scans ([`Engine::integrate_scan`]).
+//! Log-odds and CRM also take range scans ([`Engine::integrate_scan`]). [`Tiling`] builds a
+//! map in tiles (`tiles.rs`), each from the frames that reach it, with any engine.
 
 mod crm;
 mod estimate;

@@ -226,7 +226,8 @@ fn fold_segments<A: Send>(
 }
 
 /// A box that every ray of `frame` stays inside within `limits`: the camera and each valid
-/// pixel's segment end ([`fold_segments`]' segments), or `None` when no pixel has a segment.
+/// pixel's segment end (the forward-model engines' segments, 3 std past the surface, when
+/// `forward_model` is true), or `None` when no pixel has a segment.
 /// Rays are straight lines from the camera, so a box holding the camera and every end holds
 /// every ray: what decides which tiles of a tiled map a frame can touch.
 pub fn frame_reach(frame: &Frame, limits: &RayLimits, forward_model: bool) -> Option<Aabb> {

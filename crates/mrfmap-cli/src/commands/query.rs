@@ -55,29 +55,28 @@ pub fn run(a: Args) -> Result<()> {
         Some(path) => read_points(path)?,
         None => Vec::new(),
     };
-    // A tiled map is read lazily: only the tiles the queries reach are opened.
-    let tiled = TiledMap::is_tiled(&a.map).then(|| TiledMap::open(&a.map)).transpose()?;
-    let (map, lazy) = match &tiled {
-        Some(t) => (None, Some(LazyTiles::new(t))),
-        None => (Some(Map::load(&a.map)?), None),
-    };
-    let r = tiled.as_ref().map_or_else(|| map.as_ref().expect("one of the two").resolution(), |t| t.index().resolution);
-    for ((from, to), text) in segments.iter().zip(&a.segment) {
-        check_path(&[*from, *to], r).with_context(|| format!("--segment {text}"))?;
-    }
-    for (points, text) in polylines.iter().zip(&a.polyline) {
-        check_path(points, r).with_context(|| format!("--polyline {text}"))?;
-    }
-    let (seg_answers, poly_answers, point_answers, box_answers) = match (&map, lazy) {
-        (Some(map), _) => answer_all(map, &segments, &polylines, &points, &boxes, &options)?,
-        (None, Some(lazy)) => {
-            let answers = answer_all(&lazy, &segments, &polylines, &points, &boxes, &options)?;
-            let opened = lazy.finish()?;
-            let total = tiled.as_ref().map_or(0, |t| t.index().tiles.len());
-            tracing::info!("{}: read {opened} of {total} tiles", a.map.display());
-            answers
+    let check_paths = |r: f64| -> Result<()> {
+        for ((from, to), text) in segments.iter().zip(&a.segment) {
+            check_path(&[*from, *to], r).with_context(|| format!("--segment {text}"))?;
         }
-        (None, None) => unreachable!("a map or its tiles"),
+        for (points, text) in polylines.iter().zip(&a.polyline) {
+            check_path(points, r).with_context(|| format!("--polyline {text}"))?;
+        }
+        Ok(())
+    };
+    let (seg_answers, poly_answers, point_answers, box_answers) = if TiledMap::is_tiled(&a.map) {
+        // A tiled map is read lazily: only the tiles the queries reach are opened.
+        let tiled = TiledMap::open(&a.map)?;
+        check_paths(tiled.index().resolution)?;
+        let lazy = LazyTiles::new(&tiled);
+        let answers = answer_all(&lazy, &segments, &polylines, &points, &boxes, &options)?;
+        let opened = lazy.finish()?;
+        tracing::info!("{}: read {opened} of {} tiles", a.map.display(), tiled.index().tiles.len());
+        answers
+    } else {
+        let map = Map::load(&a.map)?;
+        check_paths(map.resolution())?;
+        answer_all(&map, &segments, &polylines, &points, &boxes, &options)?
     };
 
     if a.json {

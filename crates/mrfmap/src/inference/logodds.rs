@@ -216,10 +216,9 @@ impl LogOddsEngine {
     }
 
     /// Applies one scan's hit/miss marks: each marked voxel is updated once.
-    fn apply_marks(&mut self, marks: ScanMarks) {
+    fn apply_marks(&mut self, mut marks: ScanMarks) {
         let SensorModel::HitMiss { p_hit, p_miss } = self.params.model else { unreachable!("hit/miss marks") };
         let (hit, miss, min, max) = (logit(p_hit) as f32, logit(p_miss) as f32, self.min, self.max);
-        let mut marks = marks;
         if let Some(keep) = self.keep_bricks() {
             marks.bricks.retain(|b, _| keep(b.0));
         }

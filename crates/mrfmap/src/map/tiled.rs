@@ -414,6 +414,13 @@ impl TiledMap {
         for key in keys {
             if let Some(tile) = self.load_tile(*key)? {
                 map.voxels.absorb(tile.voxels);
+                // The index's sizes may be wrong (or forged): what the tiles hold is checked
+                // too, so loading stops within a tile of the limit.
+                crate::limits::check_memory(
+                    &format!("loading the tiles of {}", self.dir.display()),
+                    map.voxels.memory_bytes() as f64,
+                    "load a region: `mrfmap crop` or `mrfmap query` read only the tiles they touch",
+                )?;
             }
         }
         Ok(map)
@@ -512,5 +519,12 @@ mod tests {
         index.save(tmp.path()).unwrap();
         let e = TiledMap::open(tmp.path()).unwrap_err().to_string();
         assert!(e.contains("whole number of bricks"), "{e}");
+        // A broken index names its file; a folder without one is not a map.
+        std::fs::write(tmp.path().join(INDEX_FILE), "format = \"mrfmap-tiles\"\nversion = [").unwrap();
+        let e = TiledMap::open(tmp.path()).unwrap_err().to_string();
+        assert!(e.contains("tiles.toml"), "{e}");
+        std::fs::remove_file(tmp.path().join(INDEX_FILE)).unwrap();
+        assert!(!TiledMap::is_tiled(tmp.path()));
+        assert!(Map::load(tmp.path()).is_err());
     }
 }

@@ -8,10 +8,11 @@
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 
+use mrfmap::Choice;
 use mrfmap::frames::{Beam, Camera, DepthImage, Frame, NoiseModel, Pose, RangeScan};
 use mrfmap::inference::{
-    Budget, CrmParams, Engine, EngineConfig, EngineKind, Extent, KeyframeId, MrfEngine, MrfParams, check_build,
-    frames_extent, new_engine, scan_extent,
+    Budget, BuildOptions, Engine, EngineConfig, EngineKind, Extent, KeyframeId, MrfEngine, check_build, frames_extent,
+    new_engine, scan_extent,
 };
 use mrfmap::map::Aabb;
 use mrfmap::map::Map;
@@ -19,7 +20,6 @@ use mrfmap::outputs::{
     LiveEngine, OctomapFormat, PlyOptions, PointAnswer, QueryOptions, VoxelSource, check_path, query_box, query_points,
     query_polyline, query_segments, write_octomap, write_ply,
 };
-use mrfmap::rays::RayLimits;
 use mrfmap::source::bag::{Bag, BagOptions, for_each_frame};
 use nalgebra::{Matrix3, Rotation3, Translation3, UnitQuaternion};
 use numpy::{PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2};
@@ -156,7 +156,7 @@ impl Mapper {
 #[pymethods]
 impl Mapper {
     #[new]
-    #[pyo3(signature = (resolution, fx, fy, cx, cy, width, height, engine="logodds", noise=None, max_range=None, particles=101, iterations=mrfmap::inference::DEFAULT_SWEEPS, prior=0.1))]
+    #[pyo3(signature = (resolution, fx, fy, cx, cy, width, height, engine="logodds", noise=None, max_range=None, particles=None, iterations=None, prior=None))]
     #[allow(clippy::too_many_arguments)]
     fn new(
         resolution: f64,
@@ -169,9 +169,9 @@ impl Mapper {
         engine: &str,
         noise: Option<PathBuf>,
         max_range: Option<f64>,
-        particles: usize,
-        iterations: usize,
-        prior: f64,
+        particles: Option<usize>,
+        iterations: Option<usize>,
+        prior: Option<f64>,
     ) -> PyResult<Self> {
         let kind: EngineKind = engine.parse().map_err(py_err)?;
         let camera = Camera::new(fx, fy, cx, cy, width, height, 1000.0).map_err(py_err)?;
@@ -183,12 +183,17 @@ impl Mapper {
             }
             None => None,
         };
-        let limits = RayLimits { max_range, bounds: None };
-        let mrf = MrfParams { prior, iterations, ..MrfParams::default() };
-        let config =
-            EngineConfig { kind, resolution, limits, logodds: Default::default(), mrf, crm: CrmParams { particles } };
+        let d = BuildOptions::default();
+        let options = BuildOptions {
+            max_range,
+            iterations,
+            particles: particles.unwrap_or(d.particles),
+            prior: prior.unwrap_or(d.prior),
+            ..d
+        };
+        let config = options.config(kind, resolution).map_err(py_err)?;
         let inner = if kind == EngineKind::Mrf {
-            Inner::Mrf(Box::new(MrfEngine::new(resolution, limits, config.mrf).map_err(py_err)?))
+            Inner::Mrf(Box::new(MrfEngine::new(resolution, config.limits, config.mrf).map_err(py_err)?))
         } else {
             Inner::Online(new_engine(&config).map_err(py_err)?)
         };
@@ -628,8 +633,8 @@ impl PyMap {
 
     /// The engine that built the map.
     #[getter]
-    fn engine(&self) -> String {
-        self.map.engine.clone()
+    fn engine(&self) -> &'static str {
+        self.map.engine.name()
     }
 
     /// Voxels with occupancy above 0.5.
@@ -801,13 +806,23 @@ impl BuildSpec {
         "resolution",
         "engine",
         "tile",
+        "tile_height",
         "margin",
         "max_range",
         "bounds",
         "noise",
         "particles",
         "iterations",
+        "tolerance",
+        "work",
         "prior",
+        "allocation",
+        "keyframes",
+        "damping",
+        "ray_spacing",
+        "min_evidence",
+        "marking",
+        "clamp",
         "threads",
     ];
 
@@ -844,12 +859,27 @@ impl BuildSpec {
         if let Some(noise) = get::<PathBuf>(spec, "noise")? {
             dataset.set_noise_file(&noise).map_err(py_err)?;
         }
-        let mut config = EngineConfig::new(kind, resolution);
-        config.limits = RayLimits { max_range: get(spec, "max_range")?, bounds };
-        config.limits.validate().map_err(py_err)?;
-        config.crm.particles = get(spec, "particles")?.unwrap_or(config.crm.particles);
-        config.mrf.iterations = get(spec, "iterations")?.unwrap_or(config.mrf.iterations);
-        config.mrf.prior = get(spec, "prior")?.unwrap_or(config.mrf.prior);
+        fn named<T: Choice>(spec: &Bound<'_, PyDict>, key: &str) -> PyResult<Option<T>> {
+            get::<String>(spec, key)?.map(|s| T::parse(&s).map_err(py_err)).transpose()
+        }
+        let d = BuildOptions::default();
+        let options = BuildOptions {
+            max_range: get(spec, "max_range")?,
+            bounds,
+            iterations: get(spec, "iterations")?,
+            tolerance: get(spec, "tolerance")?,
+            work: get(spec, "work")?,
+            prior: get(spec, "prior")?.unwrap_or(d.prior),
+            allocation: named(spec, "allocation")?.unwrap_or(d.allocation),
+            keyframes: named(spec, "keyframes")?.unwrap_or(d.keyframes),
+            damping: get(spec, "damping")?.unwrap_or(d.damping),
+            ray_spacing: get(spec, "ray_spacing")?.unwrap_or(d.ray_spacing),
+            min_evidence: get(spec, "min_evidence")?.unwrap_or(d.min_evidence),
+            particles: get(spec, "particles")?.unwrap_or(d.particles),
+            marking: named(spec, "marking")?.unwrap_or(d.marking),
+            clamp: get(spec, "clamp")?,
+        };
+        let config = options.config(kind, resolution).map_err(py_err)?;
         let tile = get::<f64>(spec, "tile")?
             .map(|t| Ok::<_, PyErr>((t, get(spec, "tile_height")?, get(spec, "margin")?)))
             .transpose()?;

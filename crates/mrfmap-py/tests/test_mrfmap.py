@@ -304,6 +304,25 @@ def small_floor(tmp_path):
     return dataset
 
 
+def test_build_options_mean_what_the_flags_mean(tmp_path):
+    dataset = small_floor(tmp_path)
+    plain = mrfmap.build_dataset(dataset, resolution=0.2)
+    # Tighter clamping bounds change every voxel's probability, not which voxels exist.
+    clamped = mrfmap.build_dataset(dataset, resolution=0.2, clamp=(0.3, 0.8), marking="walk")
+    assert len(clamped) == len(plain) > 0
+    occ = clamped.voxels()[1]
+    assert occ.min() >= 0.3 - 1e-6 and occ.max() <= 0.8 + 1e-6
+    assert plain.voxels()[1].max() > 0.9
+    for bad, message in [
+        (dict(marking="ray"), "unknown marking"),
+        (dict(clamp=(0.9, 0.2)), "0 < MIN < MAX < 1"),
+        (dict(iterations=0), "at least 1"),
+        (dict(engine="mrf", keyframes="some"), "unknown keyframe selection"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            mrfmap.build_dataset(dataset, resolution=0.2, **bad)
+
+
 def dask_or_skip():
     if os.environ.get("MRFMAP_REQUIRE_DASK"):
         import distributed  # noqa: F401  (build-and-test.sh installs it: missing is a failure)

@@ -166,7 +166,7 @@ fn live_engines_answer_like_their_maps() {
 #[test]
 fn pictures_and_grids_of_far_apart_voxels_are_refused_not_allocated() {
     use mrfmap::map::VoxelKey;
-    let mut map = Map::new("logodds", 0.05).unwrap();
+    let mut map = Map::new(EngineKind::LogOdds, 0.05).unwrap();
     for x in [0, 2_000_000] {
         map.voxels.insert(VoxelKey([x, 0, 0]), MapVoxel { occupancy: 0.9, variance: 0.0 });
         map.voxels.insert(VoxelKey([0, x, 0]), MapVoxel { occupancy: 0.9, variance: 0.0 });

@@ -11,12 +11,11 @@ use std::sync::Arc;
 use mrfmap::atomic_file::write_atomic;
 use mrfmap::frames::{Frame, NoiseModel, Poly, RangeScan};
 use mrfmap::inference::{
-    Allocation, Budget, CrmParams, Engine, EngineConfig, EngineKind, Extent, KeyframeSelection, LogOddsParams, Marking,
-    MrfEngine, MrfParams, Tiling, check_build, frames_extent, new_engine, scan_extent,
+    Allocation, Budget, BuildOptions, Engine, EngineConfig, EngineKind, Extent, KeyframeSelection, Marking, MrfEngine,
+    Tiling, check_build, frames_extent, new_engine, scan_extent,
 };
 use mrfmap::map::Aabb;
 use mrfmap::map::{Map, TileKey};
-use mrfmap::rays::RayLimits;
 #[cfg(feature = "bags")]
 use mrfmap::source::bag::{Bag, BagOptions, DepthStream, bag_frames, bag_scans, for_each_frame};
 use mrfmap::source::{BeamSpacing, CarmenLog, CarmenOptions, Dataset, Misses};
@@ -40,7 +39,7 @@ pub struct MapOptions {
     #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
     pub iterations: Option<u32>,
     /// MRF: prior occupancy of every voxel.
-    #[arg(long, default_value_t = 0.1)]
+    #[arg(long, default_value_t = BuildOptions::default().prior)]
     pub prior: f64,
     /// MRF: allocate bricks around depth points only (band) or along whole rays (full).
     #[arg(long, default_value = "band", value_parser = super::choice::<Allocation>())]
@@ -52,7 +51,7 @@ pub struct MapOptions {
     /// MRF: share of a tile's old message kept when it is replaced, in [0, 1) (0, the
     /// default, is the paper's plain update; messages whose change reverses are halved
     /// whatever this says).
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, default_value_t = BuildOptions::default().damping)]
     pub damping: f64,
     /// MRF: change-driven belief propagation: sweep until no marginal moves by more than this,
     /// re-tracing only the 16x16-pixel tiles whose voxels moved since they last traced, at
@@ -69,15 +68,15 @@ pub struct MapOptions {
     /// largest block (2x2 up to 8x8) whose rays lie at most this many voxel edges apart at a
     /// tile's nearest depth; 0 (default) traces every pixel. 0.5 builds 3x faster at 0.05 m
     /// and costs accuracy (RESULTS.md).
-    #[arg(long, default_value_t = 0.0, value_parser = super::non_negative)]
+    #[arg(long, default_value_t = BuildOptions::default().ray_spacing, value_parser = super::non_negative)]
     pub ray_spacing: f64,
     /// MRF: voxels whose log-odds moved less than this from the prior are unknown (left out
     /// of the map). Default ln 3: a Bayes factor below 3 is "not worth more than a bare
     /// mention" (Kass and Raftery); 0 keeps every voxel a ray reached.
-    #[arg(long, default_value_t = mrfmap::inference::DEFAULT_MIN_EVIDENCE, value_parser = super::non_negative)]
+    #[arg(long, default_value_t = BuildOptions::default().min_evidence, value_parser = super::non_negative)]
     pub min_evidence: f64,
     /// CRM: particles per voxel pdf (memory per voxel is 4 * (particles + 1) bytes).
-    #[arg(long, default_value_t = 101, value_parser = clap::value_parser!(u16).range(2..))]
+    #[arg(long, default_value_t = BuildOptions::default().particles as u16, value_parser = clap::value_parser!(u16).range(2..))]
     pub particles: u16,
     /// Log-odds: find the voxels a depth image's rays cross by projecting boxes of voxels
     /// into the image (project, faster) or by walking every ray (walk); same map.
@@ -89,14 +88,12 @@ pub struct MapOptions {
     pub clamp: Option<(f64, f64)>,
 }
 
-/// clap parser for `--clamp MIN,MAX`: two probabilities with `0 < MIN < MAX < 1`.
+/// clap parser for `--clamp MIN,MAX`: two numbers (their range is checked with the rest of
+/// the options, [`BuildOptions::config`]).
 fn parse_clamp(s: &str) -> Result<(f64, f64), String> {
     let (lo, hi) = s.split_once(',').ok_or("expected MIN,MAX")?;
     let lo: f64 = lo.trim().parse().map_err(|e| format!("MIN: {e}"))?;
     let hi: f64 = hi.trim().parse().map_err(|e| format!("MAX: {e}"))?;
-    if !(lo > 0.0 && lo < hi && hi < 1.0) {
-        return Err(format!("need 0 < MIN < MAX < 1, got {lo},{hi}"));
-    }
     Ok((lo, hi))
 }
 
@@ -110,37 +107,29 @@ impl MapOptions {
         Ok(ds)
     }
 
+    /// The library's options these flags set.
+    pub fn build_options(&self) -> Result<BuildOptions> {
+        Ok(BuildOptions {
+            max_range: self.max_range,
+            bounds: self.bounds.as_deref().map(Aabb::parse).transpose()?,
+            iterations: self.iterations.map(|n| n as usize),
+            tolerance: self.tolerance,
+            work: self.work,
+            prior: self.prior,
+            allocation: self.allocation,
+            keyframes: self.keyframes,
+            damping: self.damping,
+            ray_spacing: self.ray_spacing,
+            min_evidence: self.min_evidence,
+            particles: self.particles as usize,
+            marking: self.marking,
+            clamp: self.clamp,
+        })
+    }
+
     /// The engine configuration for `kind` at `resolution`.
     pub fn config(&self, kind: EngineKind, resolution: f64) -> Result<EngineConfig> {
-        let bounds = self.bounds.as_deref().map(Aabb::parse).transpose()?;
-        let d = MrfParams::default();
-        // --iterations caps --tolerance's sweeps, or alone is the number of full sweeps.
-        let (iterations, tolerance) = match (self.iterations, self.tolerance) {
-            (n, Some(t)) => (n.map_or(mrfmap::inference::DEFAULT_MAX_SWEEPS, |n| n as usize), Some(t)),
-            (n, None) => (n.map_or(d.iterations, |n| n as usize), d.tolerance),
-        };
-        Ok(EngineConfig {
-            kind,
-            resolution,
-            limits: RayLimits { max_range: self.max_range, bounds },
-            logodds: {
-                let d = LogOddsParams::default();
-                let (clamp_min, clamp_max) = self.clamp.unwrap_or((d.clamp_min, d.clamp_max));
-                LogOddsParams { marking: self.marking, clamp_min, clamp_max, ..d }
-            },
-            mrf: MrfParams {
-                prior: self.prior,
-                iterations,
-                allocation: self.allocation,
-                keyframes: self.keyframes,
-                damping: self.damping,
-                ray_spacing: self.ray_spacing,
-                tolerance,
-                work: self.work,
-                min_evidence: self.min_evidence,
-            },
-            crm: CrmParams { particles: self.particles as usize },
-        })
+        Ok(self.build_options()?.config(kind, resolution)?)
     }
 }
 
@@ -1087,3 +1076,25 @@ impl<'a> FrameCache<'a> {
 
 /// What a tiled build refused for memory can change.
 const TILE_ADVICE: &str = "use smaller --tile, a coarser --resolution, or --max-range";
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(clap::Parser)]
+    struct Flags {
+        #[command(flatten)]
+        options: MapOptions,
+    }
+
+    /// The flags' defaults are the library's (one set of defaults, shown in `--help`).
+    #[test]
+    fn flags_default_to_the_library_options() {
+        let flags = Flags::try_parse_from(["mrfmap"]).unwrap();
+        assert_eq!(flags.options.build_options().unwrap(), BuildOptions::default());
+        let flags = Flags::try_parse_from(["mrfmap", "--tolerance", "0.01", "--clamp", "0.2,0.9"]).unwrap();
+        let config = flags.options.config(EngineKind::Mrf, 0.1).unwrap();
+        assert_eq!((config.mrf.tolerance, config.logodds.clamp_max), (Some(0.01), 0.9));
+    }
+}

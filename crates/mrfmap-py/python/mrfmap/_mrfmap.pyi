@@ -220,8 +220,10 @@ def build_dataset(dataset: os.PathLike[str] | str, **options: Any) -> Map:
     """Builds every frame of a dataset folder into one map. Options, as ``mrfmap build``'s:
     ``resolution`` (required), ``engine`` (``"logodds"``, ``"mrf"``, ``"crm"``),
     ``max_range``, ``bounds`` ([xmin, ymin, zmin, xmax, ymax, zmax]), ``noise`` (a
-    ``noise.toml``), ``particles``, ``iterations``, ``prior``, ``threads``. Tiled builds:
-    ``mrfmap.distributed.build``."""
+    ``noise.toml``), ``threads``; MRF: ``iterations``, ``tolerance``, ``work``, ``prior``,
+    ``allocation``, ``keyframes``, ``damping``, ``ray_spacing``, ``min_evidence``; CRM:
+    ``particles``; log-odds: ``marking``, ``clamp`` ((min, max)). Each means what the flag
+    of the same name means, with the same default. Tiled builds: ``mrfmap.distributed.build``."""
 
 def _plan_tiles(dataset: str, **options: Any) -> List[Tuple[Tuple[int, int, int], List[int]]]: ...
 def _tile_estimate(dataset: str, key: Tuple[int, int, int], frames: List[int], **options: Any) -> float: ...

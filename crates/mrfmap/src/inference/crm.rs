@@ -44,6 +44,7 @@
 //! the surface then goes away its mean falls only to the lowest particle left (0.71 after 300
 //! frames in `pdfs_stay_normalised_and_finite_over_many_updates`), not towards 0.
 
+use crate::map::EngineKind;
 use std::ops::ControlFlow;
 use std::sync::Arc;
 
@@ -661,8 +662,8 @@ fn scale_to_one(p: &mut [f32], (sum, weighted): (f32, f32)) -> f32 {
 }
 
 impl Engine for CrmEngine {
-    fn name(&self) -> &'static str {
-        "crm"
+    fn kind(&self) -> EngineKind {
+        EngineKind::Crm
     }
 
     fn resolution(&self) -> f64 {
@@ -692,7 +693,7 @@ impl Engine for CrmEngine {
     }
 
     fn map(&self) -> Map {
-        let mut map = Map::new(self.name(), self.resolution).expect("valid resolution");
+        let mut map = Map::new(self.kind(), self.resolution).expect("valid resolution");
         map.has_variance = true;
         let k = self.particles();
         for (bk, b) in &self.bricks {

@@ -12,6 +12,7 @@
 //! picks the beam nearest in bearing), ties broken by pixel index, so it too is identical
 //! for any thread count. It is meant for the papers' experiments, not for speed.
 
+use crate::map::EngineKind;
 use std::ops::ControlFlow;
 
 use rayon::prelude::*;
@@ -281,8 +282,8 @@ impl LogOddsEngine {
 }
 
 impl Engine for LogOddsEngine {
-    fn name(&self) -> &'static str {
-        "logodds"
+    fn kind(&self) -> EngineKind {
+        EngineKind::LogOdds
     }
 
     fn resolution(&self) -> f64 {
@@ -330,7 +331,7 @@ impl Engine for LogOddsEngine {
 impl LogOddsEngine {
     /// An empty map with this engine's name, resolution and parameters.
     fn map_params(&self) -> Map {
-        let mut map = Map::new(self.name(), self.grid.resolution()).expect("valid resolution");
+        let mut map = Map::new(self.kind(), self.grid.resolution()).expect("valid resolution");
         let p = self.params;
         let mut params = vec![("clamp_min", p.clamp_min), ("clamp_max", p.clamp_max)];
         match p.model {

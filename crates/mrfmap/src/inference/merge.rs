@@ -16,7 +16,6 @@
 //! A voxel only one map knows is copied from it.
 
 use super::{EngineKind, crm, logodds, mrf};
-use crate::Choice;
 use crate::error::{Error, Result};
 use crate::map::{Map, MapVoxel};
 
@@ -24,9 +23,10 @@ use crate::map::{Map, MapVoxel};
 /// engine). The maps must share engine and resolution.
 ///
 /// ```
+/// use mrfmap::map::EngineKind;
 /// use mrfmap::inference::merge;
 /// use mrfmap::map::{Map, MapVoxel, VoxelKey};
-/// let mut a = Map::new("mrf", 0.1).unwrap();
+/// let mut a = Map::new(EngineKind::Mrf, 0.1).unwrap();
 /// a.params.insert("prior".into(), "0.1".into());
 /// let mut b = a.clone();
 /// a.voxels.insert(VoxelKey([0, 0, 0]), MapVoxel { occupancy: 0.5, variance: 0.0 });
@@ -47,7 +47,7 @@ pub fn merge(a: &Map, b: &Map) -> Result<Map> {
             b.resolution()
         )));
     }
-    let combine: Box<dyn Fn(MapVoxel, MapVoxel) -> MapVoxel> = match EngineKind::parse(&a.engine)? {
+    let combine: Box<dyn Fn(MapVoxel, MapVoxel) -> MapVoxel> = match a.engine {
         EngineKind::LogOdds => Box::new(logodds::merge_rule(recorded(a, "clamp_min")?, recorded(a, "clamp_max")?)),
         EngineKind::Mrf => Box::new(mrf::merge_rule(recorded(a, "prior")?)),
         EngineKind::Crm => Box::new(crm::merge_rule()),

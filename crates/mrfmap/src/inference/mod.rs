@@ -14,18 +14,20 @@
 //!
 //! Log-odds and CRM also take range scans ([`Engine::integrate_scan`]). [`Tiling`] builds a
 //! map in tiles (`tiles.rs`), each from the frames that reach it, with any engine.
+//! [`BuildOptions`] is what a user sets for a build, turned into an [`EngineConfig`] in one
+//! place for the command line and Python alike.
 
 mod crm;
 mod estimate;
 mod logodds;
 mod merge;
 mod mrf;
+mod options;
 mod tiles;
 mod vecmath;
 
-use std::fmt;
-use std::str::FromStr;
-
+/// Which engine: defined with the maps, which record it.
+pub use crate::map::EngineKind;
 pub use crm::{CrmEngine, CrmParams, crm_ray_factors};
 pub use estimate::{BASE_MEMORY, Extent, check_build, estimate_memory, frames_extent, scan_extent};
 pub use logodds::{LogOddsEngine, LogOddsParams, Marking, SensorModel};
@@ -35,9 +37,9 @@ pub use mrf::{
     KeyframeSelection, MAX_BATCH, MAX_LOG_ODDS, MU_EPS, MrfEngine, MrfParams, RunReport, StepReport, TILE,
     ray_log_messages, ray_messages,
 };
+pub use options::BuildOptions;
 pub use tiles::{TileBuild, Tiling, default_margin};
 
-use crate::Choice;
 use crate::error::{Error, Result};
 use crate::frames::{Frame, RangeScan};
 use crate::map::{Map, MapVoxel, VoxelKey};
@@ -55,8 +57,12 @@ pub(crate) fn sigmoid(l: f64) -> f64 {
 
 /// An occupancy inference engine.
 pub trait Engine: Send + Sync {
-    /// Short name stored in map files (`logodds`, ...).
-    fn name(&self) -> &'static str;
+    /// Which engine this is (what its maps record).
+    fn kind(&self) -> EngineKind;
+    /// The engine's name (`logodds`, ...), as on the command line and in map files.
+    fn name(&self) -> &'static str {
+        self.kind().name()
+    }
     /// Voxel edge in metres.
     fn resolution(&self) -> f64;
     /// Adds one frame's evidence.
@@ -96,54 +102,6 @@ pub trait Engine: Send + Sync {
     /// Bernoulli variance of the occupancy.
     fn has_variance(&self) -> bool {
         false
-    }
-}
-
-/// The engines this build offers.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum EngineKind {
-    /// [`LogOddsEngine`].
-    LogOdds,
-    /// [`MrfEngine`] with default [`MrfParams`].
-    Mrf,
-    /// [`CrmEngine`].
-    Crm,
-}
-
-impl EngineKind {
-    /// All engines, in the order the demo and reports use.
-    pub const ALL: &[EngineKind] = &[EngineKind::LogOdds, EngineKind::Mrf, EngineKind::Crm];
-
-    /// The name used on the command line and in map files.
-    pub fn name(self) -> &'static str {
-        match self {
-            EngineKind::LogOdds => "logodds",
-            EngineKind::Mrf => "mrf",
-            EngineKind::Crm => "crm",
-        }
-    }
-}
-
-impl fmt::Display for EngineKind {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(self.name())
-    }
-}
-
-impl Choice for EngineKind {
-    const WHAT: &'static str = "engine";
-    const ALL: &'static [Self] = EngineKind::ALL;
-
-    fn name(self) -> &'static str {
-        EngineKind::name(self)
-    }
-}
-
-impl FromStr for EngineKind {
-    type Err = Error;
-
-    fn from_str(s: &str) -> Result<Self> {
-        <Self as Choice>::parse(s)
     }
 }
 

@@ -229,7 +229,7 @@ impl Tiling {
     /// (`params`) and the margin; no tiles yet.
     pub fn index(&self, config: &EngineConfig, mut params: BTreeMap<String, String>) -> TileIndex {
         params.insert("tile_margin".into(), self.margin.to_string());
-        TileIndex::new(config.kind.name(), &self.grid, config.kind == EngineKind::Crm, params)
+        TileIndex::new(config.kind, &self.grid, config.kind == EngineKind::Crm, params)
     }
 }
 
@@ -279,7 +279,7 @@ mod tests {
         let indices: Vec<usize> = (0..frames.len()).collect();
         let plan = tiling.plan(&config, &indices, |i| Ok(frames[i].clone())).unwrap();
         assert!(plan.len() >= 4, "{} tiles", plan.len());
-        let mut union = Map::new("logodds", 0.1).unwrap();
+        let mut union = Map::new(EngineKind::LogOdds, 0.1).unwrap();
         for (key, indices) in &plan {
             let built = tiling.build(&config, *key, indices.iter().map(|&i| Ok(frames[i].clone()))).unwrap();
             assert!(built.map.voxels.bricks().all(|(b, _)| tiling.grid.tile_of_brick(*b) == *key));

@@ -9,6 +9,7 @@
 //! crc32    u32       CRC-32 (IEEE) of every byte before it
 //! ```
 
+use super::EngineKind;
 use std::collections::BTreeMap;
 use std::io::Write;
 use std::path::Path;
@@ -24,7 +25,7 @@ const VERSION: u32 = 1;
 #[derive(Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct Header {
-    engine: String,
+    engine: EngineKind,
     resolution: f64,
     has_variance: bool,
     bricks: u64,
@@ -48,7 +49,7 @@ fn encode(map: &Map) -> Vec<u8> {
 /// Writes `map` in the file format to `out`, the checksum last.
 fn encode_into(map: &Map, out: &mut impl Write) -> std::io::Result<()> {
     let header = Header {
-        engine: map.engine.clone(),
+        engine: map.engine,
         resolution: map.resolution(),
         has_variance: map.has_variance,
         bricks: map.voxels.brick_count() as u64,
@@ -136,7 +137,7 @@ pub(super) fn decode(bytes: &[u8]) -> std::result::Result<Map, String> {
     let header_len = r.u32()? as usize;
     let header = std::str::from_utf8(r.take(header_len)?).map_err(|_| "header is not UTF-8")?;
     let header: Header = toml::from_str(header).map_err(|e| format!("bad header: {e}"))?;
-    let mut map = Map::new(&header.engine, header.resolution).map_err(|e| format!("bad header: {e}"))?;
+    let mut map = Map::new(header.engine, header.resolution).map_err(|e| format!("bad header: {e}"))?;
     map.params = header.params;
     map.has_variance = header.has_variance;
     // Every brick takes at least 76 + 4 bytes of file: a header claiming more bricks than the
@@ -252,7 +253,7 @@ mod tests {
     use crate::random::Rng;
 
     fn sample_map(variance: bool) -> Map {
-        let mut map = Map::new("logodds", 0.02).unwrap();
+        let mut map = Map::new(EngineKind::LogOdds, 0.02).unwrap();
         map.has_variance = variance;
         map.params.insert("p_hit".into(), "0.7".into());
         let mut rng = Rng::new(1);

@@ -8,6 +8,7 @@
 
 mod file;
 mod grid;
+mod kind;
 mod ops;
 mod region;
 mod tiled;
@@ -17,6 +18,7 @@ pub use grid::{
     mask_has, mask_set, mask_slots,
 };
 
+pub use kind::EngineKind;
 pub use ops::{Change, Grid2d, MAX_GRID2D_CELLS, VoxelState};
 pub use region::{Aabb, box_keys};
 pub use tiled::{INDEX_FILE, TileEntry, TileGrid, TileIndex, TileKey, TileTotals, TiledMap};
@@ -50,8 +52,9 @@ pub const OCCUPIED_THRESHOLD: f32 = 0.5;
 /// A finished occupancy map: what engines produce and outputs consume.
 ///
 /// ```
+/// use mrfmap::map::EngineKind;
 /// use mrfmap::map::{Map, MapVoxel, VoxelKey};
-/// let mut map = Map::new("logodds", 0.05).unwrap();
+/// let mut map = Map::new(EngineKind::LogOdds, 0.05).unwrap();
 /// map.voxels.insert(VoxelKey([0, 0, 0]), MapVoxel { occupancy: 0.9, variance: 0.0 });
 /// map.voxels.insert(VoxelKey([1, 0, 0]), MapVoxel { occupancy: 0.2, variance: 0.0 });
 /// assert_eq!(map.occupied_count(), 1);
@@ -59,8 +62,8 @@ pub const OCCUPIED_THRESHOLD: f32 = 0.5;
 /// ```
 #[derive(Clone, Debug)]
 pub struct Map {
-    /// Engine that built the map (`logodds`, ...).
-    pub engine: String,
+    /// Engine that built the map.
+    pub engine: EngineKind,
     /// Engine parameters, for the record (`p_hit = 0.7`, ...).
     pub params: BTreeMap<String, String>,
     /// True when `variance` is meaningful.
@@ -71,8 +74,8 @@ pub struct Map {
 
 impl Map {
     /// An empty map.
-    pub fn new(engine: &str, resolution: f64) -> crate::Result<Self> {
-        Ok(Map { engine: engine.into(), params: BTreeMap::new(), has_variance: false, voxels: Grid::new(resolution)? })
+    pub fn new(engine: EngineKind, resolution: f64) -> crate::Result<Self> {
+        Ok(Map { engine, params: BTreeMap::new(), has_variance: false, voxels: Grid::new(resolution)? })
     }
 
     /// Voxel edge in metres.

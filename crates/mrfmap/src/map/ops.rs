@@ -82,7 +82,7 @@ impl Map {
     /// The map without its voxels.
     fn clone_header(&self) -> Map {
         Map {
-            engine: self.engine.clone(),
+            engine: self.engine,
             params: self.params.clone(),
             has_variance: self.has_variance,
             voxels: Grid::new(self.resolution()).expect("valid resolution"),

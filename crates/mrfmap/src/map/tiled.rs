@@ -16,6 +16,7 @@
 //! a folder without one is not a map. [`TileGrid`] is the geometry; [`TiledMap`] reads the
 //! index at once and the tiles only when asked ([`TiledMap::load_tile`]).
 
+use super::EngineKind;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
@@ -192,7 +193,7 @@ pub struct TileIndex {
     /// Format version (1).
     pub version: u32,
     /// Engine that built every tile.
-    pub engine: String,
+    pub engine: EngineKind,
     /// Voxel edge in metres.
     pub resolution: f64,
     /// Tile edge in x and y (metres).
@@ -240,11 +241,11 @@ impl TileIndex {
     }
 
     /// An index of no tiles yet for maps of `engine` cut by `grid`.
-    pub fn new(engine: &str, grid: &TileGrid, has_variance: bool, params: BTreeMap<String, String>) -> Self {
+    pub fn new(engine: EngineKind, grid: &TileGrid, has_variance: bool, params: BTreeMap<String, String>) -> Self {
         TileIndex {
             format: FORMAT.into(),
             version: VERSION,
-            engine: engine.into(),
+            engine,
             resolution: grid.resolution(),
             tile_edge: grid.edge(),
             tile_height: grid.height(),
@@ -372,7 +373,7 @@ impl TiledMap {
 
     /// A map with the index's header and no voxels.
     pub fn empty_map(&self) -> Map {
-        let mut map = Map::new(&self.index.engine, self.index.resolution).expect("resolution checked at open");
+        let mut map = Map::new(self.index.engine, self.index.resolution).expect("resolution checked at open");
         map.has_variance = self.index.has_variance;
         map.params = self.index.params.clone();
         map
@@ -452,7 +453,7 @@ mod tests {
     use crate::map::MapVoxel;
 
     fn map_with(keys: &[[i32; 3]]) -> Map {
-        let mut map = Map::new("logodds", 0.1).unwrap();
+        let mut map = Map::new(EngineKind::LogOdds, 0.1).unwrap();
         for (i, k) in keys.iter().enumerate() {
             map.voxels.insert(VoxelKey(*k), MapVoxel { occupancy: 0.1 * (i % 10) as f32, variance: 0.0 });
         }
@@ -465,11 +466,11 @@ mod tests {
         let grid = TileGrid::new(1.6, 0.1).unwrap();
         let keys = [[0, 0, 0], [15, 15, 15], [16, 0, 0], [-1, -17, 3], [40, 2, -30]];
         let whole = map_with(&keys);
-        let mut index = TileIndex::new("logodds", &grid, false, BTreeMap::new());
+        let mut index = TileIndex::new(EngineKind::LogOdds, &grid, false, BTreeMap::new());
         let mut tiles: BTreeMap<TileKey, Map> = BTreeMap::new();
         for (k, v) in whole.voxels.iter() {
             let t = grid.tile_of(k);
-            tiles.entry(t).or_insert_with(|| Map::new("logodds", 0.1).unwrap()).voxels.insert(k, *v);
+            tiles.entry(t).or_insert_with(|| Map::new(EngineKind::LogOdds, 0.1).unwrap()).voxels.insert(k, *v);
         }
         assert_eq!(tiles.len(), 4, "two voxels share tile 0");
         for (t, m) in &tiles {
@@ -497,7 +498,7 @@ mod tests {
     fn bad_indexes_are_named() {
         let tmp = tempfile::tempdir().unwrap();
         let grid = TileGrid::new(0.8, 0.1).unwrap();
-        let mut index = TileIndex::new("logodds", &grid, false, BTreeMap::new());
+        let mut index = TileIndex::new(EngineKind::LogOdds, &grid, false, BTreeMap::new());
         index.tiles.push(TileEntry {
             key: [0, 0, 0],
             file: "../elsewhere.mrfmap".into(),

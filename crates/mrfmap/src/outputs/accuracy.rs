@@ -99,7 +99,7 @@ impl AccuracyParams {
         AccuracyParams {
             sigma: 0.05,
             k: 1.0,
-            empty_at_or_below: (map.engine == EngineKind::LogOdds.name()).then_some(OCCUPIED_THRESHOLD),
+            empty_at_or_below: (map.engine == EngineKind::LogOdds).then_some(OCCUPIED_THRESHOLD),
             beyond_map_is_accurate: false,
             peak: PeakRule::Entry,
         }
@@ -447,11 +447,12 @@ impl ViewScore {
 /// shorthand for [`Scorer::score_view`].
 ///
 /// ```
+/// use mrfmap::map::EngineKind;
 /// use mrfmap::frames::{Camera, DepthImage, look_at};
 /// use mrfmap::map::{Map, MapVoxel, VoxelKey};
 /// use mrfmap::outputs::{AccuracyParams, score_view};
 /// // A solid wall of voxels at x in [2.0, 2.1) seen head-on from the origin.
-/// let mut map = Map::new("mrf", 0.1).unwrap();
+/// let mut map = Map::new(EngineKind::Mrf, 0.1).unwrap();
 /// for y in -5..5 { for z in -5..5 {
 ///     map.voxels.insert(VoxelKey([20, y, z]), MapVoxel { occupancy: 0.95, variance: 0.0 });
 /// } }
@@ -499,7 +500,7 @@ mod tests {
 
     #[test]
     fn wall_at_the_true_range_is_accurate() {
-        let mut map = Map::new("mrf", 0.1).unwrap();
+        let mut map = Map::new(EngineKind::Mrf, 0.1).unwrap();
         slab(&mut map, 0, 0.01);
         slab(&mut map, 20, 0.9);
         let v = walk(&map).classify_ray(O, X, (2.03, 1.0), (0, 0), |_| {});
@@ -511,7 +512,7 @@ mod tests {
 
     #[test]
     fn reference_rule_places_the_peak_at_the_exit_and_compares_z_depth() {
-        let mut map = Map::new("mrf", 0.1).unwrap();
+        let mut map = Map::new(EngineKind::Mrf, 0.1).unwrap();
         slab(&mut map, 20, 0.9);
         let reference = Scorer::new(&map, AccuracyParams { peak: PeakRule::Exit, ..AccuracyParams::for_map(&map) });
         // The held-out surface at the wall voxel's far face: the entry rule misses by 0.1 m.
@@ -545,7 +546,7 @@ mod tests {
             ..NoiseModel::aggregate(Poly::default(), Poly([0.05, 0.0, 0.0]))
         };
         let verdict = |index: i32, depth: f64, pixel: (u32, u32), model: bool| {
-            let mut map = Map::new("mrf", 0.1).unwrap();
+            let mut map = Map::new(EngineKind::Mrf, 0.1).unwrap();
             slab(&mut map, index, 0.9);
             let scorer = Scorer::new(&map, AccuracyParams { peak: PeakRule::Exit, ..AccuracyParams::for_map(&map) });
             let scorer = if model { scorer.with_model_tolerance(&noise) } else { scorer };
@@ -563,7 +564,7 @@ mod tests {
     fn scoring_under_several_tolerances_equals_scoring_under_each() {
         use crate::frames::{Camera, Poly, look_at};
         let mut rng = Rng::new(5);
-        let mut map = Map::new("mrf", 0.1).unwrap();
+        let mut map = Map::new(EngineKind::Mrf, 0.1).unwrap();
         for _ in 0..3000 {
             let key =
                 VoxelKey([rng.range(10.0, 30.0) as i32, rng.range(-8.0, 8.0) as i32, rng.range(-8.0, 8.0) as i32]);
@@ -615,7 +616,7 @@ mod tests {
 
     #[test]
     fn wall_in_front_of_the_true_surface_is_inaccurate() {
-        let mut map = Map::new("mrf", 0.1).unwrap();
+        let mut map = Map::new(EngineKind::Mrf, 0.1).unwrap();
         slab(&mut map, 10, 0.8);
         slab(&mut map, 20, 0.99);
         let v = walk(&map).classify_ray(O, X, (2.0, 1.0), (0, 0), |_| {});
@@ -625,7 +626,7 @@ mod tests {
 
     #[test]
     fn empty_and_free_maps() {
-        let map = Map::new("mrf", 0.1).unwrap();
+        let map = Map::new(EngineKind::Mrf, 0.1).unwrap();
         assert!(Scorer::new(&map, AccuracyParams::for_map(&map)).bounds.is_none(), "empty map has no bounds");
         let cam = Camera::new(10.0, 10.0, 1.5, 1.5, 4, 4, 1000.0).unwrap();
         let mut depth = DepthImage::new(4, 4);
@@ -634,7 +635,7 @@ mod tests {
         let s = score_view(&map, &cam, &pose, &depth, &AccuracyParams::for_map(&map));
         assert_eq!((s.invalid, s.valid(), s.accuracy()), (1, 0, None));
         // Known-free space reaching past the surface: inaccurate; ending before it: invalid.
-        let mut free = Map::new("mrf", 0.1).unwrap();
+        let mut free = Map::new(EngineKind::Mrf, 0.1).unwrap();
         for i in 0..15 {
             slab(&mut free, i, 0.001);
         }
@@ -653,7 +654,7 @@ mod tests {
 
     #[test]
     fn log_odds_maps_read_free_voxels_as_empty() {
-        let mut map = Map::new("logodds", 0.1).unwrap();
+        let mut map = Map::new(EngineKind::LogOdds, 0.1).unwrap();
         slab(&mut map, 5, 0.45);
         slab(&mut map, 20, 0.8);
         let params = AccuracyParams::for_map(&map);
@@ -665,7 +666,7 @@ mod tests {
     #[test]
     fn partial_crossings_occlude_in_proportion_to_length() {
         // A ray clipping a voxel over a quarter of its width loses (1 - p)^(1/4) visibility.
-        let mut map = Map::new("mrf", 0.1).unwrap();
+        let mut map = Map::new(EngineKind::Mrf, 0.1).unwrap();
         map.voxels.insert(VoxelKey([5, 0, 0]), MapVoxel { occupancy: 0.9, variance: 0.0 });
         // Off the ray; widens the bounds, and is dense enough that the walk goes on past the
         // partial voxel (it stops once nothing in the map could beat its best peak).
@@ -687,7 +688,7 @@ mod tests {
     fn visibility_matches_fine_numerical_integration() {
         let mut rng = Rng::new(99);
         let r = 0.1;
-        let mut map = Map::new("mrf", r).unwrap();
+        let mut map = Map::new(EngineKind::Mrf, r).unwrap();
         for _ in 0..400 {
             let k = VoxelKey([0; 3].map(|_| (rng.next_u64() % 8) as i32));
             map.voxels.insert(k, MapVoxel { occupancy: rng.uniform() as f32 * 0.9, variance: 0.0 });

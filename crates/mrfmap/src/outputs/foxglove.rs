@@ -137,7 +137,7 @@ fn scene_writer<W: Write + std::io::Seek>(
     let schema = out.add_schema("foxglove.SceneUpdate", "jsonschema", schema().to_string().as_bytes())?;
     let mut metadata = BTreeMap::new();
     metadata.insert("resolution".to_string(), map.resolution().to_string());
-    metadata.insert("engine".to_string(), map.engine.clone());
+    metadata.insert("engine".to_string(), map.engine.to_string());
     let channel = out.add_channel(schema, SCENE_TOPIC, "json", &metadata)?;
     Ok((out, channel))
 }
@@ -245,12 +245,13 @@ pub fn write_scene_mcap(map: &Map, path: &Path, options: &SceneOptions) -> Resul
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::map::EngineKind;
     use crate::map::{MapVoxel, VoxelKey};
 
     #[test]
     fn a_timeline_sends_what_changed_and_deletes_what_emptied() {
         let map_of = |voxels: &[([i32; 3], f32)]| {
-            let mut map = Map::new("logodds", 0.1).unwrap();
+            let mut map = Map::new(EngineKind::LogOdds, 0.1).unwrap();
             for &(k, p) in voxels {
                 map.voxels.insert(VoxelKey(k), MapVoxel { occupancy: p, variance: 0.0 });
             }
@@ -295,7 +296,7 @@ mod tests {
 
     #[test]
     fn the_scene_reads_back_as_one_scene_update_with_a_cube_per_occupied_voxel() {
-        let mut map = Map::new("logodds", 0.1).unwrap();
+        let mut map = Map::new(EngineKind::LogOdds, 0.1).unwrap();
         for (k, p) in [([0, 0, 0], 0.9), ([1, 0, 0], 0.2), ([9, 0, 0], 0.7), ([-1, -1, 3], 0.99)] {
             map.voxels.insert(VoxelKey(k), MapVoxel { occupancy: p, variance: 0.0 });
         }

@@ -199,11 +199,12 @@ fn write_node(slice: &[Entry], depth: u32, format: OctomapFormat, emit: &mut dyn
 /// voxels beyond OctoMap's key range.
 ///
 /// ```
+/// use mrfmap::map::EngineKind;
 /// use mrfmap::map::{Map, MapVoxel, VoxelKey};
 /// use mrfmap::outputs::{OctomapFormat, read_octomap, write_octomap};
 /// # let tmp = tempfile::tempdir().unwrap();
 /// # let dir = tmp.path();
-/// let mut map = Map::new("logodds", 0.1).unwrap();
+/// let mut map = Map::new(EngineKind::LogOdds, 0.1).unwrap();
 /// map.voxels.insert(VoxelKey([0, 0, 0]), MapVoxel { occupancy: 0.9, variance: 0.0 });
 /// map.voxels.insert(VoxelKey([-1, 2, 3]), MapVoxel { occupancy: 0.2, variance: 0.0 });
 /// let path = dir.join("map.bt");
@@ -370,12 +371,13 @@ fn read_ot_node(data: &[u8], pos: &mut usize, depth: u32, key: [u16; 3], tree: &
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::map::EngineKind;
     use crate::map::MapVoxel;
     use crate::random::Rng;
 
     fn random_map(seed: u64) -> Map {
         let mut rng = Rng::new(seed);
-        let mut map = Map::new("logodds", 0.05).unwrap();
+        let mut map = Map::new(EngineKind::LogOdds, 0.05).unwrap();
         for _ in 0..3000 {
             let k = [0; 3].map(|_| (rng.next_u64() % 40) as i32 - 20);
             map.voxels.insert(VoxelKey(k), MapVoxel { occupancy: rng.range(0.01, 0.99) as f32, variance: 0.0 });
@@ -426,10 +428,10 @@ mod tests {
     fn bad_maps_and_files_are_refused() {
         let tmp = tempfile::tempdir().unwrap();
         let d = tmp.path();
-        let empty = Map::new("logodds", 0.1).unwrap();
+        let empty = Map::new(EngineKind::LogOdds, 0.1).unwrap();
         let e = write_octomap(&empty, &d.join("e.bt"), OctomapFormat::Binary).unwrap_err().to_string();
         assert!(e.contains("empty") && !d.join("e.bt").exists(), "{e}");
-        let mut far = Map::new("logodds", 0.1).unwrap();
+        let mut far = Map::new(EngineKind::LogOdds, 0.1).unwrap();
         far.voxels.insert(VoxelKey([40_000, 0, 0]), MapVoxel { occupancy: 0.9, variance: 0.0 });
         assert!(
             write_octomap(&far, &d.join("f.bt"), OctomapFormat::Binary).unwrap_err().to_string().contains("key range")

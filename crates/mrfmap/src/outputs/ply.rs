@@ -181,11 +181,12 @@ pub fn parse_ply(bytes: &[u8]) -> std::result::Result<PlyVertices, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::map::EngineKind;
     use crate::map::VoxelKey;
 
     #[test]
     fn write_then_read_back() {
-        let mut map = Map::new("logodds", 0.1).unwrap();
+        let mut map = Map::new(EngineKind::LogOdds, 0.1).unwrap();
         map.has_variance = true;
         map.voxels.insert(VoxelKey([-1, 0, 2]), MapVoxel { occupancy: 0.9, variance: 0.05 });
         map.voxels.insert(VoxelKey([3, 3, 3]), MapVoxel { occupancy: 0.2, variance: 0.01 });

@@ -278,9 +278,10 @@ pub struct BoxAnswer {
 /// The map's belief at a point.
 ///
 /// ```
+/// use mrfmap::map::EngineKind;
 /// use mrfmap::map::{Map, MapVoxel, VoxelKey};
 /// use mrfmap::outputs::{QueryOptions, query_point};
-/// let mut map = Map::new("logodds", 0.1).unwrap();
+/// let mut map = Map::new(EngineKind::LogOdds, 0.1).unwrap();
 /// map.voxels.insert(VoxelKey([0, 0, 0]), MapVoxel { occupancy: 0.9, variance: 0.0 });
 /// let a = query_point(&map, [0.05, 0.05, 0.05], &QueryOptions::default());
 /// assert!(a.known && a.occupancy == 0.8999999761581421 && (a.sigma - 0.3).abs() < 1e-6);
@@ -338,9 +339,10 @@ pub fn check_path(points: &[[f64; 3]], resolution: f64) -> Result<()> {
 /// A segment of zero length crosses no voxel: it is free with probability 1.
 ///
 /// ```
+/// use mrfmap::map::EngineKind;
 /// use mrfmap::map::{Map, MapVoxel, VoxelKey};
 /// use mrfmap::outputs::{QueryOptions, query_segment};
-/// let mut map = Map::new("logodds", 1.0).unwrap();
+/// let mut map = Map::new(EngineKind::LogOdds, 1.0).unwrap();
 /// for (x, p) in [(0, 0.1), (1, 0.2), (2, 0.9)] {
 ///     map.voxels.insert(VoxelKey([x, 0, 0]), MapVoxel { occupancy: p, variance: 0.0 });
 /// }
@@ -417,9 +419,10 @@ fn accumulate(
 /// again (at a waypoint, or coming back). Fewer than two points: an empty path.
 ///
 /// ```
+/// use mrfmap::map::EngineKind;
 /// use mrfmap::map::{Map, MapVoxel, VoxelKey};
 /// use mrfmap::outputs::{QueryOptions, query_polyline};
-/// let mut map = Map::new("logodds", 1.0).unwrap();
+/// let mut map = Map::new(EngineKind::LogOdds, 1.0).unwrap();
 /// map.voxels.insert(VoxelKey([0, 0, 0]), MapVoxel { occupancy: 0.5, variance: 0.0 });
 /// // Out and back through one voxel, which counts once.
 /// let path = [[0.5, 0.5, 0.5], [1.5, 0.5, 0.5], [0.2, 0.5, 0.5]];
@@ -500,10 +503,11 @@ pub const MAX_BOX_VOXELS: u128 = 200_000_000;
 /// The map's belief about the voxels overlapping `region`.
 ///
 /// ```
+/// use mrfmap::map::EngineKind;
 /// use mrfmap::map::{Map, MapVoxel, VoxelKey};
 /// use mrfmap::outputs::{QueryOptions, query_box};
 /// use mrfmap::map::Aabb;
-/// let mut map = Map::new("logodds", 1.0).unwrap();
+/// let mut map = Map::new(EngineKind::LogOdds, 1.0).unwrap();
 /// map.voxels.insert(VoxelKey([0, 0, 0]), MapVoxel { occupancy: 0.2, variance: 0.0 });
 /// let region = Aabb::new([0.0; 3], [2.0, 1.0, 1.0]).unwrap(); // voxels [0,0,0] and [1,0,0]
 /// let a = query_box(&map, &region, &QueryOptions::default()).unwrap();
@@ -543,12 +547,13 @@ pub fn query_box(source: &impl VoxelSource, region: &Aabb, options: &QueryOption
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::map::EngineKind;
     use crate::random::Rng;
 
     /// A random map at `r` over `[-1, 1)^3` with about half the voxels known.
     fn random_map(r: f64, has_variance: bool, seed: u64) -> Map {
         let mut rng = Rng::new(seed);
-        let mut map = Map::new(if has_variance { "crm" } else { "logodds" }, r).unwrap();
+        let mut map = Map::new(if has_variance { EngineKind::Crm } else { EngineKind::LogOdds }, r).unwrap();
         map.has_variance = has_variance;
         let n = (1.0 / r).round() as i32;
         for z in -n..n {

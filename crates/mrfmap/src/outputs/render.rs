@@ -124,9 +124,10 @@ impl View {
 /// none.
 ///
 /// ```
+/// use mrfmap::map::EngineKind;
 /// use mrfmap::map::{Map, MapVoxel, VoxelKey};
 /// use mrfmap::outputs::{Up, View, render_map};
-/// let mut map = Map::new("logodds", 0.1).unwrap();
+/// let mut map = Map::new(EngineKind::LogOdds, 0.1).unwrap();
 /// map.voxels.insert(VoxelKey([0, 0, 0]), MapVoxel { occupancy: 0.9, variance: 0.0 });
 /// let view = View { eye: [0.05, 0.05, 3.0], target: [0.05, 0.05, 0.0], width: 64, height: 48, ..View::overview(&map, Up::Z).unwrap() };
 /// let picture = render_map(&map, &view).unwrap();
@@ -209,8 +210,9 @@ pub fn render_map(map: &Map, view: &View) -> Result<Canvas> {
 /// 600 pixels across), the first remaining axis to the right and the second up.
 ///
 /// ```
+/// use mrfmap::map::EngineKind;
 /// use mrfmap::map::{Map, MapVoxel, VoxelKey};
-/// let mut map = Map::new("logodds", 0.1).unwrap();
+/// let mut map = Map::new(EngineKind::LogOdds, 0.1).unwrap();
 /// map.voxels.insert(VoxelKey([0, 0, 5]), MapVoxel { occupancy: 1.0, variance: 0.0 });
 /// map.voxels.insert(VoxelKey([3, 2, 5]), MapVoxel { occupancy: 0.0, variance: 0.0 });
 /// let c = mrfmap::outputs::slice_map(&map, 2, 0.55).unwrap();
@@ -308,6 +310,7 @@ pub fn render_grid2d(grid: &Grid2d, max_side: u32) -> Canvas {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::map::EngineKind;
 
     /// The extent (columns, rows) of what a picture draws, label rows left out.
     fn drawn(c: &Canvas) -> (u32, u32) {
@@ -325,7 +328,7 @@ mod tests {
     #[test]
     fn a_pole_along_the_up_axis_stands_upright() {
         // A pole along y, on a small base so the map is not one voxel wide.
-        let mut map = Map::new("logodds", 0.1).unwrap();
+        let mut map = Map::new(EngineKind::LogOdds, 0.1).unwrap();
         for y in 0..20 {
             map.voxels.insert(VoxelKey([0, y, 0]), MapVoxel { occupancy: 0.9, variance: 0.0 });
         }
@@ -353,7 +356,7 @@ mod tests {
     #[test]
     fn the_overview_frames_what_it_draws_not_the_free_space_around_it() {
         // A 1 m cube of occupied voxels in 12 m of free space.
-        let mut map = Map::new("logodds", 0.1).unwrap();
+        let mut map = Map::new(EngineKind::LogOdds, 0.1).unwrap();
         for x in -60..60 {
             for y in -60..60 {
                 map.voxels.insert(VoxelKey([x, y, 0]), MapVoxel { occupancy: 0.2, variance: 0.0 });
@@ -374,7 +377,7 @@ mod tests {
         let edge = (0..pw).flat_map(|x| [(x, 30), (x, ph - 1)]).chain((30..ph).flat_map(|y| [(0, y), (pw - 1, y)]));
         assert!(edge.into_iter().all(|(x, y)| picture.pixel(x, y) == [255, 255, 255]), "{w}x{h} touches the edge");
         // Nothing occupied: the free voxels are framed.
-        let mut free = Map::new("logodds", 0.1).unwrap();
+        let mut free = Map::new(EngineKind::LogOdds, 0.1).unwrap();
         free.voxels.insert(VoxelKey([0, 0, 0]), MapVoxel { occupancy: 0.2, variance: 0.0 });
         free.voxels.insert(VoxelKey([9, 0, 0]), MapVoxel { occupancy: 0.2, variance: 0.0 });
         assert!(near(View::overview(&free, Up::Z).unwrap().target, [0.5, 0.05, 0.05]));

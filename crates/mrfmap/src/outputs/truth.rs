@@ -97,11 +97,12 @@ pub fn voxel_truths(map: &Map, scene: &Scene) -> Vec<(VoxelKey, VoxelTruth)> {
 /// in a 2D study unobserved cells count, at what the engine would say about them.
 ///
 /// ```
+/// use mrfmap::map::EngineKind;
 /// use mrfmap::map::{Map, MapVoxel};
 /// use mrfmap::source::GridWorld;
 /// let mut world = GridWorld::new(0.1, 2, 1).unwrap();
 /// world.fill(1, 0, 2, 1);
-/// let mut map = Map::new("logodds", 0.1).unwrap();
+/// let mut map = Map::new(EngineKind::LogOdds, 0.1).unwrap();
 /// map.voxels.insert(world.key(1, 0), MapVoxel { occupancy: 0.9, variance: 0.0 });
 /// let cells = mrfmap::outputs::grid_world_truths(&world, &map, (0.5, 0.5));
 /// assert_eq!((cells[0].truth, cells[0].mean), (0.0, 0.5));
@@ -211,6 +212,7 @@ pub fn pearson(x: &[f64], y: &[f64]) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::map::EngineKind;
     use crate::random::Rng;
 
     /// AUC by its definition: P(score_pos > score_neg) + 0.5 P(equal), over all pairs.
@@ -283,8 +285,8 @@ mod tests {
         let text = "[camera]\nfx = 10.0\nfy = 10.0\ncx = 1.5\ncy = 1.5\nwidth = 4\nheight = 4\ndepth_scale = 1000.0\n\
                     [[box]]\nmin = [0.0, 0.0, 0.0]\nmax = [0.2, 0.2, 0.2]\n[[view]]\neye = [1.0, 0.1, 0.1]\ntarget = [0.0, 0.1, 0.1]\n";
         let scene = Scene::from_toml(text, std::path::Path::new("t.toml")).unwrap();
-        let mut perfect = Map::new("mrf", 0.1).unwrap();
-        let mut wrong = Map::new("mrf", 0.1).unwrap();
+        let mut perfect = Map::new(EngineKind::Mrf, 0.1).unwrap();
+        let mut wrong = Map::new(EngineKind::Mrf, 0.1).unwrap();
         for x in -1..3 {
             let key = VoxelKey([x, 0, 0]);
             let truth = true_occupancy(&scene, key, 0.1);

@@ -94,6 +94,7 @@ mod schedule;
 mod tiles;
 mod trace;
 
+use crate::map::EngineKind;
 use std::sync::Arc;
 
 use rustc_hash::{FxHashMap, FxHashSet};
@@ -335,8 +336,8 @@ fn check_frame(frame: &Frame) -> Result<()> {
 }
 
 impl Engine for MrfEngine {
-    fn name(&self) -> &'static str {
-        "mrf"
+    fn kind(&self) -> EngineKind {
+        EngineKind::Mrf
     }
 
     fn resolution(&self) -> f64 {
@@ -393,7 +394,7 @@ impl Engine for MrfEngine {
     }
 
     fn map(&self) -> Map {
-        let mut map = Map::new(self.name(), self.resolution()).expect("valid resolution");
+        let mut map = Map::new(self.kind(), self.resolution()).expect("valid resolution");
         for (key, s) in self.sums.iter() {
             if let Some(v) = self.map_voxel(*s) {
                 map.voxels.insert(key, v);

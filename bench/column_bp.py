@@ -8,7 +8,7 @@ Ray factor: `a` if A is occupied, `b` if A is free and B occupied, `e` if both a
 0.1. With `a / b` near 1 (a likelihood several voxels wide) the run can stop on "A occupied"
 when the exact answer is B: the marginals sit at 0 or 1 and barely move while damped messages
 are still far from their values. Counting what damping held back (as `run_until` does since
-session 15) fixes it. RESULTS.md ("Why the MRF converges slowly at 0.02 m", session 15) says
+session 15) fixes it. docs/history/RESULTS.md ("Why the MRF converges slowly at 0.02 m") says
 what it found.
 
 Usage: python3 bench/column_bp.py

@@ -31,3 +31,37 @@ pub fn bar(len: Option<usize>, what: &str) -> ProgressBar {
     bar.set_message(what.to_string());
     bar
 }
+
+/// The library's build loop reported on bars like [`bar`]'s, one per stage.
+#[derive(Default)]
+pub struct Bars {
+    bar: Option<ProgressBar>,
+}
+
+impl mrfmap::pipeline::Progress for Bars {
+    fn stage(&mut self, what: &str, total: Option<usize>) {
+        self.end();
+        self.bar = Some(bar(total, what));
+    }
+
+    fn advance(&mut self, done: usize, total: Option<usize>) {
+        if let Some(b) = &self.bar {
+            if let Some(total) = total.filter(|&t| b.length() != Some(t as u64)) {
+                b.set_length(total as u64);
+            }
+            b.set_position(done as u64);
+        }
+    }
+
+    fn status(&mut self, text: &str) {
+        if let Some(b) = &self.bar {
+            b.set_message(text.to_string());
+        }
+    }
+
+    fn end(&mut self) {
+        if let Some(b) = self.bar.take() {
+            b.finish_and_clear();
+        }
+    }
+}

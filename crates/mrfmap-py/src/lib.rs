@@ -20,7 +20,8 @@ use mrfmap::outputs::{
     LiveEngine, OctomapFormat, PlyOptions, PointAnswer, QueryOptions, VoxelSource, check_path, query_box, query_points,
     query_polyline, query_segments, write_octomap, write_ply,
 };
-use mrfmap::source::bag::{Bag, BagOptions, for_each_frame};
+use mrfmap::pipeline::{build, integrate, stream_bag};
+use mrfmap::source::bag::BagOptions;
 use nalgebra::{Matrix3, Rotation3, Translation3, UnitQuaternion};
 use numpy::{PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2};
 use pyo3::exceptions::{PyMemoryError, PyOSError, PyValueError};
@@ -281,45 +282,33 @@ impl Mapper {
         max_pose_gap: f64,
     ) -> PyResult<usize> {
         let options = BagOptions { depth_topic, camera_info_topic, fixed_frame, pose_topic, max_pose_gap };
-        // One pass: each image is decoded and added once its pose is known (memory holds a
-        // few images, whatever the bag's size).
+        // The library's build loop over the bag's images, streamed: each is decoded and added
+        // once its pose is known (memory holds a few images, whatever the bag's size).
         let start = *self.frames.lock().unwrap_or_else(|p| p.into_inner());
         let mut added = 0;
         let result = py.detach(|| {
-            let bag = Bag::open(&path)?;
             let mut inner = self.lock();
             let m = self.camera;
-            let report = for_each_frame(&bag, &options, None, |mut frame| {
-                let c = frame.camera;
-                if (c.fx, c.fy, c.cx, c.cy, c.width, c.height) != (m.fx, m.fy, m.cx, m.cy, m.width, m.height) {
-                    return Err(mrfmap::Error::Invalid(format!(
-                        "{}: the bag's camera (fx {}, fy {}, cx {}, cy {}, {}x{}) is not this mapper's",
-                        path.display(),
-                        c.fx,
-                        c.fy,
-                        c.cx,
-                        c.cy,
-                        c.width,
-                        c.height
-                    )));
-                }
-                frame.index = start + added;
-                frame.noise = self.noise.clone();
-                match &mut *inner {
-                    Inner::Mrf(e) => e.add_keyframe(frame).map(|_| ())?,
-                    Inner::Online(e) => e.integrate(&frame)?,
-                }
-                added += 1;
-                Ok(std::ops::ControlFlow::Continue(()))
-            })?;
-            if report.frames == 0 {
-                return Err(mrfmap::Error::Invalid(format!(
-                    "{}: no image of {} has a pose",
-                    path.display(),
-                    options.depth_topic
-                )));
-            }
-            Ok(())
+            stream_bag(&path, options, None, (&[], &[]), &self.config, |frames| {
+                let mut frames = frames.map(|f| {
+                    let (i, mut frame) = f?;
+                    let c = frame.camera;
+                    if (c.fx, c.fy, c.cx, c.cy, c.width, c.height) != (m.fx, m.fy, m.cx, m.cy, m.width, m.height) {
+                        return Err(mrfmap::Error::file(
+                            &path,
+                            format!(
+                                "the bag's camera (fx {}, fy {}, cx {}, cy {}, {}x{}) is not this mapper's",
+                                c.fx, c.fy, c.cx, c.cy, c.width, c.height
+                            ),
+                        ));
+                    }
+                    frame.index = start + added;
+                    frame.noise = self.noise.clone();
+                    added += 1;
+                    Ok((i, frame))
+                });
+                integrate(inner.engine_mut(), &mut frames, None, &mut (), None)
+            })
         });
         // Frames added before an error still count.
         *self.frames.lock().unwrap_or_else(|p| p.into_inner()) = start + added;
@@ -929,35 +918,42 @@ fn build_dataset(py: Python<'_>, dataset: PathBuf, options: Option<&Bound<'_, Py
     if spec.tile.is_some() {
         return Err(PyValueError::new_err("build_dataset builds one map; tiled builds: mrfmap.distributed.build"));
     }
-    let map = spec.run(py, || {
-        let mut engine = new_engine(&spec.config)?;
-        for frame in spec.frames((0..spec.dataset.len()).collect()) {
-            engine.integrate(&frame?)?;
-        }
-        engine.finish()?;
-        Ok(engine.into_map())
+    let report = spec.run(py, || {
+        let mut frames = (0..spec.dataset.len()).map(|i| spec.dataset.frame(i).map(|f| (i, f)));
+        build(&spec.config, &mut frames, Some(spec.dataset.len()), &mut (), None)
     })?;
-    Ok(PyMap { map })
+    Ok(PyMap { map: report.map })
 }
 
 /// A tile's key as Python sees it.
 type TileKeyTuple = (i32, i32, i32);
 
-/// Which frames reach which tile: `[((x, y, z), [frame, ...]), ...]`, reading each frame once.
+/// Which of `frames` (default: all) reach which tile: `[((x, y, z), [frame, ...]), ...]`, reading
+/// each frame once.
 #[pyfunction]
-#[pyo3(signature = (dataset, **options))]
+#[pyo3(signature = (dataset, frames=None, **options))]
 fn _plan_tiles(
     py: Python<'_>,
     dataset: PathBuf,
+    frames: Option<Vec<usize>>,
     options: Option<&Bound<'_, PyDict>>,
 ) -> PyResult<Vec<(TileKeyTuple, Vec<usize>)>> {
     let spec = BuildSpec::of(&dataset, &options.cloned().unwrap_or_else(|| PyDict::new(py)))?;
     let tiling = spec.tiling()?;
-    let plan = spec.run(py, || {
-        let indices: Vec<usize> = (0..spec.dataset.len()).collect();
-        tiling.plan(&spec.config, &indices, |i| spec.dataset.frame(i))
-    })?;
+    let indices = frames.unwrap_or_else(|| (0..spec.dataset.len()).collect());
+    spec.check_frames(&indices)?;
+    let plan = spec.run(py, || tiling.plan(&spec.config, &indices, |i| spec.dataset.frame(i)))?;
     Ok(plan.into_iter().map(|(k, f)| ((k.0[0], k.0[1], k.0[2]), f)).collect())
+}
+
+/// How many frames the dataset folder holds (its poses; no image is read), once the tiled
+/// build's options are checked: what a distributed build asks before it starts a cluster.
+#[pyfunction]
+#[pyo3(signature = (dataset, **options))]
+fn _frame_count(py: Python<'_>, dataset: PathBuf, options: Option<&Bound<'_, PyDict>>) -> PyResult<usize> {
+    let spec = BuildSpec::of(&dataset, &options.cloned().unwrap_or_else(|| PyDict::new(py)))?;
+    spec.tiling()?;
+    Ok(spec.dataset.len())
 }
 
 /// The memory (bytes) building tile `key` from `frames` adds to a running process: its
@@ -1063,6 +1059,7 @@ fn _mrfmap(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(load_map, m)?)?;
     m.add_function(wrap_pyfunction!(simulate, m)?)?;
     m.add_function(wrap_pyfunction!(build_dataset, m)?)?;
+    m.add_function(wrap_pyfunction!(_frame_count, m)?)?;
     m.add_function(wrap_pyfunction!(_plan_tiles, m)?)?;
     m.add_function(wrap_pyfunction!(_tile_estimate, m)?)?;
     m.add_function(wrap_pyfunction!(_build_tile, m)?)?;

@@ -13,7 +13,9 @@
 //! - [`inference`]: the engines (log-odds, MRF, CRM) behind one [`inference::Engine`] trait;
 //! - [`map`]: the sparse bricked voxel grid and the finished [`map::Map`] with its file format;
 //! - [`outputs`]: exports (PLY, OctoMap), the accuracy metric, ground-truth metrics and
-//!   pictures.
+//!   pictures;
+//! - [`pipeline`]: the loop that runs a source's readings through an engine into a map, which
+//!   the command line and Python share.
 //!
 //! ```no_run
 //! use mrfmap::inference::{EngineConfig, EngineKind, new_engine};
@@ -34,6 +36,7 @@
 #![allow(clippy::neg_cmp_op_on_partial_ord)]
 
 pub mod atomic_file;
+
 mod choice;
 mod error;
 pub mod frames;
@@ -41,6 +44,7 @@ pub mod inference;
 pub mod limits;
 pub mod map;
 pub mod outputs;
+pub mod pipeline;
 pub mod random;
 pub mod rays;
 pub mod source;

@@ -85,7 +85,7 @@ pub struct ExportArgs {
     #[arg(short, long)]
     output: PathBuf,
     #[command(flatten)]
-    topics: crate::commands::build::BagArgs,
+    topics: crate::commands::options::BagArgs,
     /// A noise model to write as the dataset's noise.toml.
     #[arg(long)]
     noise: Option<PathBuf>,

@@ -10,8 +10,9 @@ use mrfmap::inference::{
     CrmParams, EngineConfig, EngineKind, LogOddsParams, Marking, MrfEngine, MrfParams, new_engine,
 };
 
-use super::build::{BagArgs, LaserOptions, Reading};
+use super::options::{BagArgs, LaserOptions};
 use mrfmap::frames::Frame;
+use mrfmap::pipeline::Reading;
 use mrfmap::source::Dataset;
 
 #[derive(clap::Args)]

@@ -9,18 +9,19 @@ use mrfmap::inference::EngineKind;
 use mrfmap::outputs::PeakRule;
 use mrfmap::outputs::pictures::write_text;
 
-use super::build::{MapOptions, check_indices};
 use super::eval::{MetricOptions, mean_std, write_view_pictures};
 use super::loo::leave_one_out;
+use super::options::MapOptions;
 use super::protocol::Protocol;
 use super::views::Views;
+use mrfmap::pipeline::check_indices;
 
 #[derive(clap::Args)]
 pub struct Args {
     /// Dataset folder, or a ROS bag (with --depth-topic and --fixed-frame or --pose-topic).
     dataset: PathBuf,
     #[command(flatten)]
-    bag: super::build::BagArgs,
+    bag: super::options::BagArgs,
     /// Engines to compare.
     #[arg(long, value_delimiter = ',', default_value = "logodds", value_parser = super::choice::<EngineKind>())]
     engines: Vec<EngineKind>,

@@ -54,7 +54,7 @@ pub fn run(a: Args) -> Result<()> {
     for &kind in EngineKind::ALL {
         let config = EngineConfig::new(kind, RESOLUTION);
         let t = Instant::now();
-        let report = super::build::build_map(&indices, &config, |i| dataset.frame(i))?;
+        let report = super::options::build_map(&indices, &config, |i| dataset.frame(i))?;
         let elapsed = t.elapsed().as_secs_f64();
         let map_path = out.join(format!("{kind}.mrfmap"));
         let ply_path = out.join(format!("{kind}.ply"));

@@ -13,7 +13,7 @@ use mrfmap::outputs::{AccuracyParams, PeakRule};
 use mrfmap::outputs::{Scorer, TruthMetrics, ViewScore, truth_metrics};
 use mrfmap::source::Scene;
 
-use super::build::BagArgs;
+use super::options::BagArgs;
 use super::protocol::Protocol;
 use super::views::{Target, Views};
 
@@ -165,7 +165,7 @@ fn warn_if_not_held_out(map: &Map, dataset: &std::path::Path, views: &[usize]) {
     if !same(source) {
         return;
     }
-    let used = super::build::parse_ranges(frames);
+    let used = mrfmap::pipeline::parse_ranges(frames);
     let seen: Vec<usize> = views.iter().copied().filter(|v| used.contains(v)).collect();
     if !seen.is_empty() {
         tracing::warn!(
@@ -280,7 +280,7 @@ pub fn run(a: Args) -> Result<()> {
         let dataset = Views::open(ds_path, None, &a.bag)?;
         let noise = dataset.noise();
         let views = if a.views.is_empty() { (0..dataset.len()).collect() } else { a.views.clone() };
-        super::build::check_indices(dataset.len(), &views)?;
+        mrfmap::pipeline::check_indices(dataset.len(), &views)?;
         warn_if_not_held_out(&map, ds_path, &views);
         let target = a.metric.target(Protocol::Truth);
         let mut by_metric = Vec::new();

@@ -62,7 +62,7 @@ pub fn run(a: Args) -> Result<()> {
             if got != ext && !(ext == "yaml" && got == "yml") {
                 bail!("{flag} {}: expected a .{ext} file", path.display());
             }
-            super::build::check_output_folder(path)?;
+            super::options::check_output_folder(path)?;
         }
     }
     let map = Map::load(&a.map)?;

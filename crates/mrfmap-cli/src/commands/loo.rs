@@ -8,10 +8,11 @@ use mrfmap::frames::Frame;
 use mrfmap::inference::EngineKind;
 use mrfmap::outputs::{PeakRule, Scorer, ViewScore};
 
-use super::build::{BagArgs, MapOptions, build_map, check_indices};
 use super::eval::{MetricOptions, metrics_json, score, scorer, views_table};
+use super::options::{BagArgs, MapOptions, build_map};
 use super::protocol::Protocol;
 use super::views::Views;
+use mrfmap::pipeline::check_indices;
 
 #[derive(clap::Args)]
 pub struct Args {

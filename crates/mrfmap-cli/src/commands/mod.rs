@@ -1,5 +1,5 @@
 //! One module per subcommand; the small map operations (crop, clear, merge, diff, project)
-//! share `ops`.
+//! share `ops`, and the flag groups several commands take live in `options`.
 
 #[cfg(feature = "bags")]
 pub mod bag;
@@ -15,6 +15,7 @@ pub mod info;
 pub mod loo;
 pub mod noise;
 pub mod ops;
+pub mod options;
 pub mod protocol;
 pub mod query;
 pub mod scaling;

@@ -8,7 +8,7 @@ use std::sync::Arc;
 
 use mrfmap::frames::{Frame, NoiseModel, Poly};
 
-use super::build::MapOptions;
+use super::options::MapOptions;
 use super::views::Target;
 
 /// An experiment protocol.

@@ -54,7 +54,7 @@ fn triple(name: &str, text: &str) -> Result<[f64; 3]> {
 }
 
 pub fn run(a: Args) -> Result<()> {
-    super::build::check_output_folder(&a.output)?;
+    super::options::check_output_folder(&a.output)?;
     let map = Map::load(&a.map)?;
     if map.voxels.is_empty() {
         bail!("{}: the map is empty: nothing to show", a.map.display());

@@ -9,7 +9,7 @@ use anyhow::{Context, Result, bail};
 use mrfmap::frames::{Camera, DepthImage, Frame, NoiseModel, Pose};
 use mrfmap::source::Dataset;
 
-use super::build::BagArgs;
+use super::options::BagArgs;
 
 /// A dataset, or a bag's frames read once.
 pub enum Views {

@@ -1,4 +1,7 @@
-//! Outputs: what leaves the library — exported files, evaluation and pictures.
+//! Outputs: what leaves the library — exported files, evaluation and pictures. Each folder
+//! says what it holds: `files/` (formats), `evaluation/` (metrics), `pictures/` (images and
+//! plots, with their raster canvas and map renderer); `query.rs` answers a planner. Everything
+//! is re-exported here, so callers name `outputs::write_ply`, not its folder.
 //!
 //! - [`write_ply`] / [`read_ply`]: voxel centres with occupancy (and variance) as PLY;
 //! - [`write_map_server`] / [`read_map_server`]: 2D occupancy grids as ROS `map_server` PGM + YAML;
@@ -15,36 +18,28 @@
 //! - [`Canvas`] and [`PlotArea`]: raster figures with text (plots of noise models, scaling
 //!   curves) without a font or plotting dependency.
 
-mod accuracy;
-mod canvas;
-#[cfg(feature = "mcap")]
-mod foxglove;
-mod grid2d;
-mod octomap;
+mod evaluation;
+mod files;
 pub mod pictures;
-mod ply;
 mod query;
-mod render;
-mod truth;
 
-pub use accuracy::{
-    AccuracyParams, PeakRule, PixelClass, ProfileStep, RayVerdict, Scorer, VISIBILITY_FLOOR, ViewScore, score_view,
+pub use evaluation::{
+    AccuracyParams, PeakRule, PixelClass, ProfileStep, RayVerdict, Scorer, TruthMetrics, VISIBILITY_FLOOR, ViewScore,
+    VoxelTruth, grid_world_truths, mean_sigma, metrics_of, pearson, roc_auc, score_view, true_occupancy, truth_metrics,
+    voxel_truths,
 };
-pub use canvas::{Canvas, PlotArea, Rgb, Series, line_plot, nice_step};
+pub use files::{
+    FREE_THRESH, Grid2dFiles, MapServerGrid, OCCUPIED_THRESH, OctomapFormat, OctomapLeaf, OctomapSummary, OctomapTree,
+    PlyOptions, PlyVertices, TREE_DEPTH, decode_octomap, parse_ply, read_map_server, read_octomap, read_ply,
+    write_changes_ply, write_map_server, write_octomap, write_ply,
+};
 #[cfg(feature = "mcap")]
-pub use foxglove::{SCENE_TOPIC, SceneOptions, SceneSummary, SceneTimeline, write_scene_mcap};
-pub use grid2d::{FREE_THRESH, Grid2dFiles, MapServerGrid, OCCUPIED_THRESH, read_map_server, write_map_server};
-pub use octomap::{
-    OctomapFormat, OctomapLeaf, OctomapSummary, OctomapTree, TREE_DEPTH, decode_octomap, read_octomap, write_octomap,
+pub use files::{SCENE_TOPIC, SceneOptions, SceneSummary, SceneTimeline, write_scene_mcap};
+pub use pictures::{
+    Canvas, Colouring, PlotArea, Rgb, Series, Up, View, line_plot, nice_step, render_grid2d, render_map, slice_map,
 };
-pub use ply::{PlyOptions, PlyVertices, parse_ply, read_ply, write_changes_ply, write_ply};
 pub use query::{
     BoxAnswer, LazyTiles, LiveEngine, MAX_BOX_VOXELS, MAX_PATH_VOXELS, PointAnswer, QueryOptions, SegmentAnswer,
     VoxelSource, box_voxel_count, check_path, for_each_in_box, query_box, query_point, query_points, query_polyline,
     query_segment, query_segments,
-};
-pub use render::{Colouring, Up, View, render_grid2d, render_map, slice_map};
-pub use truth::{
-    TruthMetrics, VoxelTruth, grid_world_truths, mean_sigma, metrics_of, pearson, roc_auc, true_occupancy,
-    truth_metrics, voxel_truths,
 };

@@ -307,6 +307,44 @@ fn associate(depths: &[f64], poses: &[f64], max_diff: f64) -> Vec<Option<usize>>
     depth_match
 }
 
+/// Decoded frames of a dataset kept for reuse (neighbouring tiles of a tiled build share
+/// frames), the oldest dropped first beyond a budget of memory: a tenth of the limit
+/// ([`crate::limits::max_memory`]), at most 1 GiB.
+pub struct FrameCache<'a> {
+    dataset: &'a Dataset,
+    frames: std::collections::HashMap<usize, Arc<Frame>>,
+    order: std::collections::VecDeque<usize>,
+    bytes: usize,
+    budget: usize,
+}
+
+impl<'a> FrameCache<'a> {
+    /// An empty cache of `dataset`'s frames.
+    pub fn new(dataset: &'a Dataset) -> Self {
+        let budget = (crate::limits::max_memory() / 10).min(1 << 30) as usize;
+        FrameCache { dataset, frames: Default::default(), order: Default::default(), bytes: 0, budget }
+    }
+
+    /// Frame `index`, decoded now or earlier.
+    pub fn get(&mut self, index: usize) -> Result<Arc<Frame>> {
+        if let Some(f) = self.frames.get(&index) {
+            return Ok(f.clone());
+        }
+        let frame = Arc::new(self.dataset.frame(index)?);
+        let size = |f: &Frame| std::mem::size_of_val(f.depth.data());
+        self.bytes += size(&frame);
+        self.frames.insert(index, frame.clone());
+        self.order.push_back(index);
+        while self.bytes > self.budget && self.order.len() > 1 {
+            let old = self.order.pop_front().expect("more than one");
+            if let Some(f) = self.frames.remove(&old) {
+                self.bytes -= size(&f);
+            }
+        }
+        Ok(frame)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -18,7 +18,7 @@ mod scene;
 mod simulate;
 
 pub use carmen::{BeamSpacing, CarmenLog, CarmenOptions, LaserReading, Misses, parse_carmen};
-pub use dataset::{Dataset, DatasetOptions, FrameInfo};
+pub use dataset::{Dataset, DatasetOptions, FrameCache, FrameInfo};
 pub use depth_noise::{DepthNoise, NoiseStatistics, StructuredLight, noise_statistics};
 pub use depth_png::{decode_depth_png, quantise_depth, read_depth_png, write_depth_png};
 pub use grid_world::GridWorld;

@@ -20,8 +20,9 @@ use mrfmap::outputs::{Series, line_plot};
 use mrfmap::source::Dataset;
 
 use super::{Method, Scores, noisy_copy, score};
-use crate::commands::build::{BUILD_ADVICE, build_map, dataset_extent};
 use crate::commands::noise::NoiseArgs;
+use crate::commands::options::build_map;
+use mrfmap::pipeline::{BUILD_ADVICE, dataset_extent};
 
 #[derive(clap::Args)]
 pub struct Args {

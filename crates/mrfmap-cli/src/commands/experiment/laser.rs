@@ -24,7 +24,7 @@ use mrfmap::outputs::render_grid2d;
 use mrfmap::source::{BeamSpacing, Misses};
 
 use super::{Method, Scores, score, sweep};
-use crate::commands::build::LaserOptions;
+use crate::commands::options::LaserOptions;
 
 #[derive(clap::Args)]
 pub struct Args {

@@ -23,9 +23,10 @@ use mrfmap::outputs::{AccuracyParams, PeakRule, Scorer, Up, View, ViewScore, ren
 use mrfmap::source::Dataset;
 
 use super::noisy_copy;
-use crate::commands::build::{BUILD_ADVICE, build_map, dataset_extent};
 use crate::commands::eval::mean_std;
 use crate::commands::noise::{NoiseArgs, describe};
+use crate::commands::options::build_map;
+use mrfmap::pipeline::{BUILD_ADVICE, dataset_extent};
 
 /// The paper's Table II: (resolution, MRFMap, OctoMap) accuracy means.
 const PAPER: [(f64, f64, f64); 3] = [(0.01, 0.945, 0.922), (0.02, 0.939, 0.882), (0.05, 0.891, 0.723)];

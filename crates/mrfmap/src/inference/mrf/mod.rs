@@ -15,7 +15,8 @@
 //!   message counts with its length in the voxel over the voxel edge: a full crossing counts
 //!   once, a corner clip a little. (The paper's text averages a keyframe's rays into one
 //!   message per voxel; a voxel crossed by 100 rays then gets the evidence of one, walls stay
-//!   at 0.2-0.5 and the marginals are under-confident by construction: RESULTS.md.)
+//!   at 0.2-0.5 and the marginals are under-confident by construction: docs/history/RESULTS.md,
+//!   "Every ray a factor".)
 //! - **Tiles** are the unit of bookkeeping and of re-tracing: a keyframe's image is cut into
 //!   [`TILE`] x [`TILE`] pixel tiles, and each tile keeps, per voxel its rays reach, the sum
 //!   of their lengths, its message (the sum of its rays' messages) and the `S` its rays saw
@@ -380,7 +381,7 @@ impl Engine for MrfEngine {
                 // is a fixed 3 sweeps for that reason), so say so where the cap is reached.
                 Some(_) => format!(
                     ", not converged within the {} sweeps --iterations allows (held-out accuracy does not \
-                     need convergence, RESULTS.md \"Session 16\"; raise --iterations to go on)",
+                     need convergence, RESULTS.md \"The online MRF\"; raise --iterations to go on)",
                     self.params.iterations
                 ),
                 None => String::new(),

@@ -118,7 +118,8 @@ pub struct MrfParams {
     /// where Kass and Raftery's scale of evidence (JASA 1995) ends "not worth more than a
     /// bare mention": a Bayes factor below 3. Such voxels are mostly inside walls, just
     /// behind surfaces: every ray occluded there sends a message a hair above 1/2, and
-    /// hundreds of them sum to a marginal of 0.1-0.3 where the truth is 1 (RESULTS.md). 0
+    /// hundreds of them sum to a marginal of 0.1-0.3 where the truth is 1 (docs/history/RESULTS.md,
+    /// "Weak evidence is unknown"). 0
     /// keeps every voxel a ray reached.
     pub min_evidence: f64,
 }
@@ -148,13 +149,14 @@ pub const DEFAULT_TOLERANCE: f64 = 1e-3;
 /// Default sweeps of a batch build ([`MrfParams::default`]): the MRFMap paper's fixed three
 /// passes. On coffin-world (views 2, 6 and 9 held out) they score within 0.002 of the
 /// change-driven schedule at 0.01 m and 0.005-0.008 above it at 0.02 m, in a third of the time
-/// (RESULTS.md, "Session 16").
+/// (RESULTS.md, "The online MRF").
 pub const DEFAULT_SWEEPS: usize = 3;
 
 /// Default cap on the sweeps of [`MrfEngine::run_until`] (`--tolerance` alone). Adding a
 /// keyframe to a converged 60-view map of the demo room mostly reaches it with a few dozen
 /// tiles still moving (about 1,900 tiles traced in all, 1,200 of them the new keyframe's); its
-/// map is then within 0.02 of the converged one for 99.97% of voxels (BENCHMARKS.md). A whole
+/// map is then within 0.02 of the converged one for 99.97% of voxels (docs/history/BENCHMARKS.md,
+/// session 7). A whole
 /// build may stop further away: a few hundred voxels of coffin-world at 0.02 m kept
-/// oscillating for more than 100 sweeps (RESULTS.md).
+/// oscillating for more than 100 sweeps (docs/history/RESULTS.md, "Why the MRF converges slowly").
 pub const DEFAULT_MAX_SWEEPS: usize = 10;

@@ -9,12 +9,12 @@ use std::ops::ControlFlow;
 use rayon::prelude::*;
 
 use super::canvas::{Canvas, Rgb};
-use super::pictures::viridis;
-use super::truth::mean_sigma;
+use super::viridis;
 use crate::error::{Error, Result};
 pub use crate::frames::Up;
 use crate::map::Aabb;
 use crate::map::{Grid2d, Map, MapVoxel, VoxelKey};
+use crate::outputs::mean_sigma;
 use crate::rays::for_each_crossing;
 
 /// What the colour of a rendered voxel says.

@@ -6,13 +6,17 @@ use std::fmt::Write as _;
 use std::io::Write;
 use std::path::Path;
 
-use super::accuracy::{PixelClass, ProfileStep, RayVerdict, ViewScore};
-use super::canvas::{Canvas, PlotArea, Rgb, nice_step, write_rgb_png};
-use super::truth::{VoxelTruth, mean_sigma, true_occupancy};
+mod canvas;
+mod render;
+
+pub use canvas::{Canvas, PlotArea, Rgb, Series, line_plot, nice_step, write_rgb_png};
+pub use render::{Colouring, Up, View, render_grid2d, render_map, slice_map};
+
 use crate::atomic_file::write_atomic;
 use crate::error::{Error, Result};
 use crate::frames::{NoiseModel, STD_FLOOR};
 use crate::map::{Map, VoxelKey};
+use crate::outputs::{PixelClass, ProfileStep, RayVerdict, ViewScore, VoxelTruth, mean_sigma, true_occupancy};
 use crate::source::Scene;
 
 /// Colours of the accuracy image, as the MRFMap paper's Fig. 7.

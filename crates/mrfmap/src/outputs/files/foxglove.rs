@@ -14,10 +14,10 @@ use std::path::{Path, PathBuf};
 
 use serde_json::{Value, json};
 
-use super::{Colouring, Up};
 use crate::atomic_file::{Pending, create_atomic, write_atomic};
 use crate::error::{Error, Result};
 use crate::map::Map;
+use crate::outputs::{Colouring, Up};
 
 /// Topic the scene is published on.
 pub const SCENE_TOPIC: &str = "/mrfmap/occupancy";

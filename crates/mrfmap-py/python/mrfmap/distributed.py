@@ -2,8 +2,10 @@
 
 A map larger than one machine is built as a *tiled map* (a folder of tile map files and an
 index, ``tiles.toml``; README "Tiled maps"). Every tile is built alone from the frames whose
-rays can reach it, so tiles are independent tasks: this module plans them, hands one task
-per tile to a Dask cluster and writes the index when every tile is in.
+rays can reach it, so tiles are independent tasks. Planning (which frames reach which tile)
+reads every frame once; it too runs on the cluster, in chunks of frames, so that the client
+reads no image and the workers share that pass. Then one task per tile builds it, and the
+client writes the index when every tile is in.
 
 >>> import mrfmap.distributed as md                                   # doctest: +SKIP
 >>> md.build("floor/", "floor-tiles/", tile=10.0, resolution=0.05)    # doctest: +SKIP
@@ -37,6 +39,28 @@ def plan(source: str, *, tile: float, resolution: float, **options: Any) -> List
     """Which frames reach which tile: ``[((x, y, z), [frame, ...]), ...]``, reading every frame
     of the dataset folder ``source`` once (options as :func:`build`)."""
     return _mrfmap._plan_tiles(str(source), tile=tile, resolution=resolution, **options)
+
+
+def _plan_chunk(source: str, frames: List[int], options: Dict[str, Any]) -> List[tuple]:
+    """Planning of some frames, on a worker (its tasks' thread count)."""
+    return _mrfmap._plan_tiles(source, frames, **options)
+
+
+def _plan_on(client: Any, source: str, count: int, options: Dict[str, Any], retries: int) -> List[tuple]:
+    """:func:`plan` of the ``count`` frames as tasks on ``client``'s workers, a few chunks of
+    frames per worker (so a slow chunk does not hold the others up), merged in frame order."""
+    workers = max(1, len(client.scheduler_info().get("workers", {})))
+    size = max(1, -(-count // (4 * workers)))
+    chunks = [list(range(i, min(i + size, count))) for i in range(0, count, size)]
+    futures = [
+        client.submit(_plan_chunk, source, chunk, options, retries=retries, pure=False, priority=1_000_000)
+        for chunk in chunks
+    ]
+    merged: Dict[tuple, List[int]] = {}
+    for part in client.gather(futures):
+        for key, frames in part:
+            merged.setdefault(tuple(key), []).extend(frames)
+    return sorted((key, sorted(frames)) for key, frames in merged.items())
 
 
 def _status_kib(field: str) -> Optional[int]:
@@ -115,8 +139,8 @@ def build(
     too (default 0 for log-odds, whose tiles equal the map built whole, 1 m for MRF and CRM).
     ``client``: a ``distributed.Client`` (default: a ``LocalCluster`` of ``workers`` worker
     processes, default one per core). ``threads_per_task``: threads each tile's build uses.
-    The summary's ``plan_seconds`` and ``cluster_seconds`` are the time spent planning and
-    starting a local cluster (0 with a client); its ``entries`` are the tiles' index entries with their memory estimate and,
+    The summary's ``plan_seconds`` and ``cluster_seconds`` are the time spent planning (on
+    the cluster's workers) and starting a local cluster (0 with a client); its ``entries`` are the tiles' index entries with their memory estimate and,
     on Linux, their worker's resident size before the task and peak during it.
     """
     options: Dict[str, Any] = {"tile": tile, "resolution": resolution, "engine": engine}
@@ -139,12 +163,9 @@ def build(
         from distributed import Client, LocalCluster, progress as dask_progress
     except ImportError as e:
         raise ImportError("mrfmap.distributed needs Dask: pip install 'mrfmap[distributed]'") from e
+    # The options are checked (and the dataset's poses read) here, before any cluster starts.
+    count = _mrfmap._frame_count(source, **options)
     started = time.monotonic()
-    tiles = plan(source, **options)
-    planned = time.monotonic()
-    if not tiles:
-        raise ValueError(f"{source}: no frame reaches any tile (no valid depth within the bounds)")
-    os.makedirs(out_dir, exist_ok=True)
     task_options = dict(options, threads=threads_per_task)
     own = client is None
     cluster = None
@@ -155,6 +176,11 @@ def build(
         client = Client(cluster)
     ready = time.monotonic()
     try:
+        tiles = _plan_on(client, source, count, task_options, retries)
+        planned = time.monotonic()
+        if not tiles:
+            raise ValueError(f"{source}: no frame reaches any tile (no valid depth within the bounds)")
+        os.makedirs(out_dir, exist_ok=True)
         futures = [
             client.submit(
                 _build_one,
@@ -186,8 +212,8 @@ def build(
         "frames": len({f for _, frames in tiles for f in frames}),
         "tile_frames": sum(len(frames) for _, frames in tiles),
         "seconds": time.monotonic() - started,
-        "plan_seconds": planned - started,
-        "cluster_seconds": ready - planned,
+        "plan_seconds": planned - ready,
+        "cluster_seconds": ready - started,
         "entries": entries,
     }
 

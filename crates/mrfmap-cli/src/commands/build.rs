@@ -193,7 +193,8 @@ pub fn run(a: Args) -> Result<()> {
         );
     }
     let mut snapshots = a.snapshots.snapshots()?;
-    let mut build = |readings: &mut Readings<'_, Frame>, count: Option<usize>| match online {
+    // Depth frames, from a dataset or a bag, go through one of the two loops.
+    let mut frames_build = |readings: &mut Readings<'_, Frame>, count: Option<usize>| match online {
         Some(o) => build_online_with(readings, count, &config, o, snapshots.take()),
         None => Ok(build(&config, readings, count, &mut Bars::default(), snapshots.take())?),
     };
@@ -208,7 +209,7 @@ pub fn run(a: Args) -> Result<()> {
         (build_map(&indices, &config, |i| Ok(scans[i].clone()))?, indices)
     } else if BagArgs::is_bag(&a.dataset) {
         let pick = (a.frames.as_slice(), a.exclude.as_slice());
-        a.bag.build_streamed(&a.dataset, a.options.noise.as_deref(), pick, &config, &mut build)?
+        a.bag.build_streamed(&a.dataset, a.options.noise.as_deref(), pick, &config, &mut frames_build)?
     } else if a.dataset.is_file() {
         let log = a.laser.open(&a.dataset)?;
         let scans = a.laser.scans(&log, a.resolution, a.options.noise.as_deref())?;
@@ -236,7 +237,7 @@ pub fn run(a: Args) -> Result<()> {
         );
         up = dataset.up();
         let mut readings = indices.iter().map(|&i| dataset.frame(i).map(|f| (i, f)));
-        (build(&mut readings, Some(indices.len()))?, indices)
+        (frames_build(&mut readings, Some(indices.len()))?, indices)
     };
     let mut map = report.map;
     // What went in, so `eval` can tell held-out views from views the map was built from.

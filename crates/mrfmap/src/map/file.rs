@@ -337,5 +337,9 @@ mod tests {
         assert!(e.contains("not sorted"), "{e}");
         let e = decode(&forged(&header(2, 2), &[([0, 0, 0], one), ([0, 0, 0], one)])).unwrap_err();
         assert!(e.contains("not sorted"), "{e}");
+        // A map of an engine this build does not know is refused by name.
+        let foreign = header(1, 1).replace("logodds", "octomap");
+        let e = decode(&forged(&foreign, &[([0, 0, 0], one)])).unwrap_err();
+        assert!(e.contains("unknown engine \"octomap\"") && e.contains("logodds, mrf, crm"), "{e}");
     }
 }

@@ -157,9 +157,10 @@ impl Mapper {
 #[pymethods]
 impl Mapper {
     #[new]
-    #[pyo3(signature = (resolution, fx, fy, cx, cy, width, height, engine="logodds", noise=None, max_range=None, particles=None, iterations=None, prior=None))]
+    #[pyo3(signature = (resolution, fx, fy, cx, cy, width, height, engine="logodds", noise=None, max_range=None, particles=None, iterations=None, prior=None, **options))]
     #[allow(clippy::too_many_arguments)]
     fn new(
+        py: Python<'_>,
         resolution: f64,
         fx: f64,
         fy: f64,
@@ -173,6 +174,7 @@ impl Mapper {
         particles: Option<usize>,
         iterations: Option<usize>,
         prior: Option<f64>,
+        options: Option<&Bound<'_, PyDict>>,
     ) -> PyResult<Self> {
         let kind: EngineKind = engine.parse().map_err(py_err)?;
         let camera = Camera::new(fx, fy, cx, cy, width, height, 1000.0).map_err(py_err)?;
@@ -184,15 +186,22 @@ impl Mapper {
             }
             None => None,
         };
-        let d = BuildOptions::default();
-        let options = BuildOptions {
-            max_range,
-            iterations,
-            particles: particles.unwrap_or(d.particles),
-            prior: prior.unwrap_or(d.prior),
-            ..d
-        };
-        let config = options.config(kind, resolution).map_err(py_err)?;
+        // The named options and the rest (`**options`) are one set of build options.
+        let spec = PyDict::new(py);
+        if let Some(o) = options {
+            check_keys(o, OPTION_KEYS)?;
+            if o.contains("keyframes")? {
+                return Err(PyValueError::new_err(
+                    "keyframes: a Mapper makes every frame it is given a keyframe (choose them before add_frame)",
+                ));
+            }
+            spec.update(o.as_mapping())?;
+        }
+        spec.set_item("max_range", max_range)?;
+        spec.set_item("prior", prior)?;
+        spec.set_item("particles", particles)?;
+        spec.set_item("iterations", iterations)?;
+        let config = build_options(&spec)?.config(kind, resolution).map_err(py_err)?;
         let inner = if kind == EngineKind::Mrf {
             Inner::Mrf(Box::new(MrfEngine::new(resolution, config.limits, config.mrf).map_err(py_err)?))
         } else {
@@ -779,6 +788,76 @@ fn simulate(py: Python<'_>, scene: PathBuf, out_dir: PathBuf, seed: u64) -> PyRe
     .map_err(py_err)
 }
 
+/// The keyword arguments that fill a [`BuildOptions`]: `mrfmap build`'s options by the same names.
+const OPTION_KEYS: &[&str] = &[
+    "max_range",
+    "bounds",
+    "iterations",
+    "tolerance",
+    "work",
+    "prior",
+    "allocation",
+    "keyframes",
+    "damping",
+    "ray_spacing",
+    "min_evidence",
+    "particles",
+    "marking",
+    "clamp",
+];
+
+/// Refuses a key of `spec` that is not in `known`, listing those that are.
+fn check_keys(spec: &Bound<'_, PyDict>, known: &[&str]) -> PyResult<()> {
+    for key in spec.keys() {
+        let key: String = key.extract()?;
+        if !known.contains(&key.as_str()) {
+            return Err(PyValueError::new_err(format!("unknown option {key:?} (known: {})", known.join(", "))));
+        }
+    }
+    Ok(())
+}
+
+/// `spec[key]` as a `T`; `None` when absent or None.
+fn get<'py, T: FromPyObjectOwned<'py>>(spec: &Bound<'py, PyDict>, key: &str) -> PyResult<Option<T>> {
+    match spec.get_item(key)? {
+        Some(v) if !v.is_none() => {
+            v.extract::<T>().map(Some).map_err(|e| PyValueError::new_err(format!("{key}: {}", Into::<PyErr>::into(e))))
+        }
+        _ => Ok(None),
+    }
+}
+
+/// The [`BuildOptions`] of `spec`'s [`OPTION_KEYS`] (its other keys are the caller's), with the
+/// defaults for the keys it does not hold or holds as None.
+fn build_options(spec: &Bound<'_, PyDict>) -> PyResult<BuildOptions> {
+    fn named<T: Choice>(spec: &Bound<'_, PyDict>, key: &str) -> PyResult<Option<T>> {
+        get::<String>(spec, key)?.map(|s| T::parse(&s).map_err(py_err)).transpose()
+    }
+    let bounds = get::<Vec<f64>>(spec, "bounds")?
+        .map(|b| match b.as_slice() {
+            [a, b, c, d, e, f] => Aabb::new([*a, *b, *c], [*d, *e, *f]).map_err(py_err),
+            _ => Err(PyValueError::new_err("bounds: need [xmin, ymin, zmin, xmax, ymax, zmax]")),
+        })
+        .transpose()?;
+    let d = BuildOptions::default();
+    Ok(BuildOptions {
+        max_range: get(spec, "max_range")?,
+        bounds,
+        iterations: get(spec, "iterations")?,
+        tolerance: get(spec, "tolerance")?,
+        work: get(spec, "work")?,
+        prior: get(spec, "prior")?.unwrap_or(d.prior),
+        allocation: named(spec, "allocation")?.unwrap_or(d.allocation),
+        keyframes: named(spec, "keyframes")?.unwrap_or(d.keyframes),
+        damping: get(spec, "damping")?.unwrap_or(d.damping),
+        ray_spacing: get(spec, "ray_spacing")?.unwrap_or(d.ray_spacing),
+        min_evidence: get(spec, "min_evidence")?.unwrap_or(d.min_evidence),
+        particles: get(spec, "particles")?.unwrap_or(d.particles),
+        marking: named(spec, "marking")?.unwrap_or(d.marking),
+        clamp: get(spec, "clamp")?,
+    })
+}
+
 /// How a dataset is built into a map, whole or in tiles: the keyword arguments of
 /// `build_dataset` and `mrfmap.distributed.build` (the stub file documents them).
 struct BuildSpec {
@@ -791,84 +870,20 @@ struct BuildSpec {
 }
 
 impl BuildSpec {
-    const KEYS: &[&str] = &[
-        "resolution",
-        "engine",
-        "tile",
-        "tile_height",
-        "margin",
-        "max_range",
-        "bounds",
-        "noise",
-        "particles",
-        "iterations",
-        "tolerance",
-        "work",
-        "prior",
-        "allocation",
-        "keyframes",
-        "damping",
-        "ray_spacing",
-        "min_evidence",
-        "marking",
-        "clamp",
-        "threads",
-    ];
+    /// Keys beside [`OPTION_KEYS`].
+    const KEYS: &[&str] = &["resolution", "engine", "tile", "tile_height", "margin", "noise", "threads"];
 
     fn of(dataset: &std::path::Path, spec: &Bound<'_, PyDict>) -> PyResult<Self> {
-        for key in spec.keys() {
-            let key: String = key.extract()?;
-            if !Self::KEYS.contains(&key.as_str()) {
-                return Err(PyValueError::new_err(format!(
-                    "unknown option {key:?} (known: {})",
-                    Self::KEYS.join(", ")
-                )));
-            }
-        }
-        fn get<'py, T: FromPyObjectOwned<'py>>(spec: &Bound<'py, PyDict>, key: &str) -> PyResult<Option<T>> {
-            match spec.get_item(key)? {
-                Some(v) if !v.is_none() => v
-                    .extract::<T>()
-                    .map(Some)
-                    .map_err(|e| PyValueError::new_err(format!("{key}: {}", Into::<PyErr>::into(e)))),
-                _ => Ok(None),
-            }
-        }
+        check_keys(spec, &[Self::KEYS, OPTION_KEYS].concat())?;
         let resolution: f64 =
             get(spec, "resolution")?.ok_or_else(|| PyValueError::new_err("resolution is required"))?;
         let kind: EngineKind =
             get::<String>(spec, "engine")?.as_deref().unwrap_or("logodds").parse().map_err(py_err)?;
-        let bounds = get::<Vec<f64>>(spec, "bounds")?
-            .map(|b| match b.as_slice() {
-                [a, b, c, d, e, f] => Aabb::new([*a, *b, *c], [*d, *e, *f]).map_err(py_err),
-                _ => Err(PyValueError::new_err("bounds: need [xmin, ymin, zmin, xmax, ymax, zmax]")),
-            })
-            .transpose()?;
         let mut dataset = mrfmap::source::Dataset::open(dataset).map_err(py_err)?;
         if let Some(noise) = get::<PathBuf>(spec, "noise")? {
             dataset.set_noise_file(&noise).map_err(py_err)?;
         }
-        fn named<T: Choice>(spec: &Bound<'_, PyDict>, key: &str) -> PyResult<Option<T>> {
-            get::<String>(spec, key)?.map(|s| T::parse(&s).map_err(py_err)).transpose()
-        }
-        let d = BuildOptions::default();
-        let options = BuildOptions {
-            max_range: get(spec, "max_range")?,
-            bounds,
-            iterations: get(spec, "iterations")?,
-            tolerance: get(spec, "tolerance")?,
-            work: get(spec, "work")?,
-            prior: get(spec, "prior")?.unwrap_or(d.prior),
-            allocation: named(spec, "allocation")?.unwrap_or(d.allocation),
-            keyframes: named(spec, "keyframes")?.unwrap_or(d.keyframes),
-            damping: get(spec, "damping")?.unwrap_or(d.damping),
-            ray_spacing: get(spec, "ray_spacing")?.unwrap_or(d.ray_spacing),
-            min_evidence: get(spec, "min_evidence")?.unwrap_or(d.min_evidence),
-            particles: get(spec, "particles")?.unwrap_or(d.particles),
-            marking: named(spec, "marking")?.unwrap_or(d.marking),
-            clamp: get(spec, "clamp")?,
-        };
-        let config = options.config(kind, resolution).map_err(py_err)?;
+        let config = build_options(spec)?.config(kind, resolution).map_err(py_err)?;
         let tile = get::<f64>(spec, "tile")?
             .map(|t| Ok::<_, PyErr>((t, get(spec, "tile_height")?, get(spec, "margin")?)))
             .transpose()?;

@@ -304,6 +304,20 @@ def small_floor(tmp_path):
     return dataset
 
 
+def test_mapper_takes_the_build_options():
+    m = mrfmap.Mapper(0.05, engine="logodds", clamp=(0.3, 0.8), bounds=[-1, -1, 0, 1, 1, 3], **CAM)
+    m.add_frame(wall(), pose())
+    centres, occ, _ = m.map().voxels()
+    assert occ.size > 0 and occ.min() >= 0.3 - 1e-6 and occ.max() <= 0.8 + 1e-6
+    # Bounds hold to the voxel: no centre beyond the box by more than half a voxel (the wall
+    # itself, 2.7 m wide, would reach 1.35 m).
+    assert np.all(centres[:, 2] < 3.0) and np.all(np.abs(centres[:, :2]) <= 1.025 + 1e-9)
+    for bad, message in [(dict(colour="red"), "unknown option"), (dict(keyframes="auto"), "every frame"),
+                         (dict(marking="ray"), "unknown marking")]:
+        with pytest.raises(ValueError, match=message):
+            mrfmap.Mapper(0.05, **bad, **CAM)
+
+
 def test_build_options_mean_what_the_flags_mean(tmp_path):
     dataset = small_floor(tmp_path)
     plain = mrfmap.build_dataset(dataset, resolution=0.2)

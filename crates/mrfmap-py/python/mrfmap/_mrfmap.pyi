@@ -18,7 +18,11 @@ class Mapper:
     ``max_range`` cuts longer readings, which then only clear space. MRF: ``prior`` per
     voxel, ``iterations`` the sweeps of ``run()``; every ray is a factor (module docs
     of ``mrfmap::inference::mrf``). The MRF's map leaves out voxels no ray has reached.
-    Raises ``ValueError`` for bad parameters and ``OSError`` for unreadable files.
+    ``**options`` takes the rest of ``mrfmap build``'s engine options by the same names and
+    with the same defaults (``bounds``, ``tolerance``, ``work``, ``allocation``, ``damping``,
+    ``ray_spacing``, ``min_evidence``, ``marking``, ``clamp``; not ``keyframes``: every frame
+    given to ``add_frame`` is a keyframe). Raises ``ValueError`` for bad parameters and
+    unknown options, and ``OSError`` for unreadable files.
     """
 
     def __init__(
@@ -36,6 +40,7 @@ class Mapper:
         particles: int = 101,
         iterations: int = 3,
         prior: float = 0.1,
+        **options: Any,
     ) -> None: ...
     def add_frame(
         self,

@@ -34,6 +34,7 @@ type Queried<'py> = PyResult<(Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64
 fn py_err(e: mrfmap::Error) -> PyErr {
     match e {
         mrfmap::Error::Io { .. } => PyOSError::new_err(e.to_string()),
+        mrfmap::Error::Memory(_) => PyMemoryError::new_err(e.to_string()),
         _ => PyValueError::new_err(e.to_string()),
     }
 }
@@ -137,7 +138,7 @@ impl Mapper {
     /// refuses a build: `MemoryError`, before any allocation.
     fn check_memory(&self, extent: Option<Extent>) -> PyResult<()> {
         let advice = "use a coarser resolution or a max_range";
-        check_build(&self.config, extent, advice).map_err(|e| PyMemoryError::new_err(e.to_string()))
+        check_build(&self.config, extent, advice).map_err(py_err)
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, Inner> {

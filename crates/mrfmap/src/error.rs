@@ -30,6 +30,11 @@ pub enum Error {
     /// An argument or parameter is out of range (resolution <= 0, unknown engine, ...).
     #[error("{0}")]
     Invalid(String),
+    /// The work would need more memory than the limit ([`crate::limits::max_memory`]) allows:
+    /// refused before it starts, or as soon as it outgrows the limit. The message says what
+    /// the work was, the estimate or resident size, the limit and what to change.
+    #[error("{0}")]
+    Memory(String),
 }
 
 impl Error {

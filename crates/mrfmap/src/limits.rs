@@ -111,7 +111,7 @@ pub fn human(bytes: f64) -> String {
 pub fn check_memory(what: &str, estimate: f64, advice: &str) -> Result<()> {
     let limit = max_memory();
     if estimate > limit as f64 {
-        return Err(Error::Invalid(format!(
+        return Err(Error::Memory(format!(
             "{what} would need about {} of memory, more than the limit of {} ({advice}; or raise the limit \
              with --max-memory / MRFMAP_MAX_MEMORY)",
             human(estimate),
@@ -131,7 +131,10 @@ mod tests {
         assert_eq!(human(3.5 * (1u64 << 30) as f64), "3.5 GiB");
         assert_eq!(human(1e30), "1.0e30 B");
         set_max_memory(1 << 20);
-        let e = check_memory("a map", 5e6, "use a coarser resolution").unwrap_err().to_string();
+        let e = check_memory("a map", 5e6, "use a coarser resolution").unwrap_err();
+        // Its own kind, so that callers (Python: MemoryError) can tell it from bad input.
+        assert!(matches!(e, Error::Memory(_)), "{e:?}");
+        let e = e.to_string();
         assert!(e.contains("4.8 MiB") && e.contains("1.0 MiB") && e.contains("coarser"), "{e}");
         assert!(check_memory("a map", 1e5, "").is_ok());
         set_max_memory(0);

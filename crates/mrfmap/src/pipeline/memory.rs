@@ -57,7 +57,7 @@ impl<'a> Growth<'a> {
         }
         let limit = crate::limits::max_memory();
         if let Some(resident) = crate::limits::resident_memory().filter(|&r| r > limit) {
-            return Err(Error::Invalid(format!(
+            return Err(Error::Memory(format!(
                 "the map outgrew the memory limit after {} frames ({} resident, limit {}; {BUILD_ADVICE}, or raise \
                  the limit with --max-memory / MRFMAP_MAX_MEMORY)",
                 n + 1,

@@ -280,10 +280,21 @@ impl<'a> Probe<'a> {
 
 /// Readings to walk of `count`, and per reading a sampling stride for rays of about
 /// `mean_length` metres, so that the walk stays within [`STEP_BUDGET`].
-fn plan(count: usize, rays: f64, mean_length: f64, edge: f64) -> (usize, f64) {
+///
+/// A camera's rays (`focal` length in pixels) need not be walked closer than a quarter brick
+/// apart at the mean range: a brick there spans `focal * edge / mean_length` pixels, so such
+/// rays meet the bricks a denser walk would, and the walk's voxel counts are per ray (made up
+/// for the pixels between). Half a brick apart was tried and found too few of the MRF's
+/// surface bricks (its estimates fell to 0.66x the peak). Without this bound a few-frame build
+/// walked a third of its pixels, and the estimate was 44% of the whole build's instructions
+/// (icl-livingroom-5 at 0.05 m; BENCHMARKS.md, "Memory estimates").
+fn plan(count: usize, rays: f64, mean_length: f64, edge: f64, focal: Option<f64>) -> (usize, f64) {
     let steps = 1.8 * mean_length / edge + 1.0;
     let probes = count.min(MAX_PROBES).min((STEP_BUDGET / (MIN_RAYS * steps)).max(1.0) as usize).max(1);
-    let per = (STEP_BUDGET / (probes as f64 * steps)).clamp(MIN_RAYS.min(rays.max(1.0)), rays.max(1.0));
+    let spacing = focal.map_or(1.0, |f| (0.25 * f * edge / mean_length.max(edge)).max(1.0));
+    let per = (STEP_BUDGET / (probes as f64 * steps))
+        .min(rays / (spacing * spacing))
+        .clamp(MIN_RAYS.min(rays.max(1.0)), rays.max(1.0));
     (probes, rays / per)
 }
 
@@ -357,7 +368,7 @@ pub fn frames_extent(
     for pose in &poses {
         probe.include(pose.translation.vector.into());
     }
-    let (probes, stride) = plan(poses.len(), pixels, length / n.max(1.0), probe.edge);
+    let (probes, stride) = plan(poses.len(), pixels, length / n.max(1.0), probe.edge, Some(f));
     let step = stride.sqrt().ceil().max(1.0) as u32;
     let (sampled_angle, native) = (step as f64 / f, 1.0 / f);
     let readings = poses.len() as f64 / probes as f64;
@@ -415,7 +426,7 @@ pub fn scan_extent(scans: &[RangeScan], config: &EngineConfig) -> Option<Extent>
         })
         .sum();
     let per_scan = beams as f64 / scans.len().max(1) as f64;
-    let (probes, stride) = plan(scans.len(), per_scan, length / beams.max(1) as f64, probe.edge);
+    let (probes, stride) = plan(scans.len(), per_scan, length / beams.max(1) as f64, probe.edge, None);
     let every = stride.ceil().max(1.0) as usize;
     let readings = scans.len() as f64 / probes as f64;
     for j in 0..probes {
@@ -514,3 +525,23 @@ const MRF_ENTRY: f64 = 16.0;
 const MRF_FRAME_PER_PIXEL: f64 = 4.0;
 /// Bytes per pixel of the working memory of integrating one reading.
 const SCRATCH_PER_PIXEL: f64 = 40.0;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_camera_walks_rays_a_quarter_brick_apart_at_most() {
+        // 5 frames of 640 x 480, rays of 3 m, bricks of 0.4 m, focal 480 px: a brick at 3 m
+        // spans 64 pixels, so rays 16 pixels apart (1,200 a frame) are enough.
+        let (probes, stride) = plan(5, 307_200.0, 3.0, 0.4, Some(480.0));
+        assert_eq!(probes, 5);
+        assert!((stride - 256.0).abs() < 1e-9, "{stride}");
+        // Without a camera the budget alone decides: far denser.
+        let (_, budget_only) = plan(5, 307_200.0, 3.0, 0.4, None);
+        assert!(budget_only < 3.0, "{budget_only}");
+        // Never fewer than MIN_RAYS a reading, however coarse the bricks.
+        let (_, coarse) = plan(5, 307_200.0, 3.0, 40.0, Some(480.0));
+        assert!(307_200.0 / coarse >= MIN_RAYS - 1e-9, "{coarse}");
+    }
+}

@@ -20,7 +20,7 @@ use mrfmap::outputs::{
     LiveEngine, OctomapFormat, PlyOptions, PointAnswer, QueryOptions, VoxelSource, check_path, query_box, query_points,
     query_polyline, query_segments, write_octomap, write_ply,
 };
-use mrfmap::pipeline::{build, integrate, stream_bag};
+use mrfmap::pipeline::{build, check_indices, integrate, stream_bag};
 use mrfmap::source::bag::BagOptions;
 use nalgebra::{Matrix3, Rotation3, Translation3, UnitQuaternion};
 use numpy::{PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2};
@@ -912,13 +912,7 @@ impl BuildSpec {
 
     /// Refuses frame indices the dataset does not have.
     fn check_frames(&self, indices: &[usize]) -> PyResult<()> {
-        match indices.iter().find(|&&i| i >= self.dataset.len()) {
-            Some(i) => Err(PyValueError::new_err(format!(
-                "frame {i} is out of range: the dataset has {} frames",
-                self.dataset.len()
-            ))),
-            None => Ok(()),
-        }
+        check_indices(self.dataset.len(), indices).map_err(py_err)
     }
 
     fn frames(&self, indices: Vec<usize>) -> impl Iterator<Item = mrfmap::Result<Frame>> + '_ {

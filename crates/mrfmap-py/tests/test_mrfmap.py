@@ -318,7 +318,7 @@ def test_mapper_takes_the_build_options():
             mrfmap.Mapper(0.05, **bad, **CAM)
 
 
-def test_build_options_mean_what_the_flags_mean(tmp_path):
+def test_build_options_mean_what_the_flags_mean(tmp_path, monkeypatch):
     dataset = small_floor(tmp_path)
     plain = mrfmap.build_dataset(dataset, resolution=0.2)
     # Tighter clamping bounds change every voxel's probability, not which voxels exist.
@@ -327,6 +327,12 @@ def test_build_options_mean_what_the_flags_mean(tmp_path):
     occ = clamped.voxels()[1]
     assert occ.min() >= 0.3 - 1e-6 and occ.max() <= 0.8 + 1e-6
     assert plain.voxels()[1].max() > 0.9
+    # A map over the memory limit is refused before any work, as `mrfmap build` refuses it
+    # (about 3 GiB at 0.01 m here).
+    monkeypatch.setenv("MRFMAP_MAX_MEMORY", "32M")
+    with pytest.raises(MemoryError, match="memory"):
+        mrfmap.build_dataset(dataset, resolution=0.01)
+    monkeypatch.delenv("MRFMAP_MAX_MEMORY")
     for bad, message in [
         (dict(marking="ray"), "unknown marking"),
         (dict(clamp=(0.9, 0.2)), "0 < MIN < MAX < 1"),

@@ -68,6 +68,16 @@ pub fn estimate_memory(config: &EngineConfig, extent: &Extent) -> f64 {
 /// a tenth of a second, and at most this many bricks (24 bytes each) held while counting.
 const STEP_BUDGET: f64 = 8e6;
 
+/// Brick steps after which a walk stops and the estimate falls back on the box's volume: the
+/// budget with room for a mean ray length that was misjudged.
+const CUT_STEPS: f64 = 4.0 * STEP_BUDGET;
+
+/// Distinct bricks after which a walk stops likewise: the budget's steps, each a new brick.
+/// (The steps' cut alone let a walk at a resolution far below the scene's scale, where every
+/// step is a new brick, hold four times as many: 1 µm voxels on a room took 1.6 GB and
+/// 25-34 s to refuse the build.)
+const CUT_BRICKS: usize = STEP_BUDGET as usize;
+
 /// Readings walked at most; more are subsampled evenly along the sequence.
 const MAX_PROBES: usize = 512;
 
@@ -129,8 +139,10 @@ struct Probe<'a> {
     crossed: f64,
     /// Brick steps walked (and planned for the ray being walked).
     steps: f64,
-    /// Set when the steps outgrew the budget: the walk stopped.
+    /// Set when the steps or the bricks outgrew the budget: the walk stopped.
     cut: bool,
+    /// Distinct bricks held at most ([`CUT_BRICKS`]).
+    max_bricks: usize,
     /// Bricks holding an end point.
     surface: FxHashSet<BrickKey>,
     /// Set for a second walk: the bricks the MRF allocates, whose voxels the rays cross are
@@ -153,6 +165,7 @@ impl<'a> Probe<'a> {
             crossed: 0.0,
             steps: 0.0,
             cut: false,
+            max_bricks: CUT_BRICKS,
             surface: FxHashSet::default(),
             band: None,
             entries: 0.0,
@@ -187,7 +200,7 @@ impl<'a> Probe<'a> {
         // A walk the budget cannot pay for (a resolution far below the scene's scale) stops
         // here; the estimate then falls back on the box's volume.
         self.steps += 1.8 * (seg.end - seg.start) / self.edge + 1.0;
-        if self.steps > 4.0 * STEP_BUDGET {
+        if self.cut || self.steps > CUT_STEPS {
             self.cut = true;
             return;
         }
@@ -210,6 +223,10 @@ impl<'a> Probe<'a> {
         let reading = self.readings + 1;
         walk.crossings(seg.start, seg.end, |c| {
             let across = (sampled * 0.5 * (c.s_in + c.s_out) / r).max(1.0).min(lines).powi(dims);
+            if self.bricks.len() >= self.max_bricks {
+                self.cut = true;
+                return ControlFlow::Break(());
+            }
             let cell = self.bricks.entry(BrickKey(c.key.0)).or_default();
             cell.0 += (c.length() / r * across * readings) as f32;
             if cell.1 != reading {
@@ -543,5 +560,33 @@ mod tests {
         // Never fewer than MIN_RAYS a reading, however coarse the bricks.
         let (_, coarse) = plan(5, 307_200.0, 3.0, 40.0, Some(480.0));
         assert!(307_200.0 / coarse >= MIN_RAYS - 1e-9, "{coarse}");
+    }
+
+    #[test]
+    fn a_walk_stops_at_its_brick_limit_and_falls_back_on_the_volume() {
+        let config = EngineConfig::new(EngineKind::LogOdds, 0.01);
+        let mut probe = Probe::new(&config);
+        let noise = default_noise_model();
+        // 4 m rays along x, side by side: about 50 bricks of 8 cm each.
+        let ray = |y: f64| PixelRay {
+            u: 0,
+            v: 0,
+            origin: [0.01, y, 0.01],
+            dir: [1.0, 0.0, 0.0],
+            range: 4.0,
+            cz: 1.0,
+            returned: true,
+        };
+        probe.ray(&ray(0.05), &noise, 1e-3, 1e-3, 2, 1.0);
+        let one = probe.bricks.len();
+        assert!(!probe.cut && one > 40, "{one}");
+        probe.max_bricks = one + 10;
+        probe.ray(&ray(0.25), &noise, 1e-3, 1e-3, 2, 1.0);
+        assert!(probe.cut && probe.bricks.len() == one + 10, "{}", probe.bricks.len());
+        // Once cut, no ray is walked; the box the rays reach, whole, is the estimate.
+        probe.ray(&ray(0.45), &noise, 1e-3, 1e-3, 2, 1.0);
+        assert_eq!(probe.bricks.len(), one + 10);
+        let extent = probe.finish(3, 1.0).unwrap();
+        assert!(extent.bricks >= 3.0 * one as f64, "{}", extent.bricks);
     }
 }

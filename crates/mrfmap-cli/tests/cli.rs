@@ -620,6 +620,29 @@ fn crm_icl_experiment_writes_its_curves() {
     assert!(json["crm_pcc_above_logodds_at_every_step"].is_boolean());
     assert!(out.join("mae.png").is_file() && out.join("pcc.png").is_file());
     assert!(std::fs::read_to_string(out.join("report.md")).unwrap().contains("| 4 |"));
+    // Fed the noise-free frames (`--clean`), log-odds after the last one is the reference
+    // itself, so it ranks every voxel right (AUC 1), which it does not with noise.
+    let auc = |json: &serde_json::Value| json["steps"][1]["logodds"]["auc"].as_f64().unwrap();
+    assert!(auc(&json) < 1.0, "{json}");
+    let o = run(&[
+        "experiment",
+        "crm-icl",
+        s(&data),
+        "-o",
+        s(&out),
+        "--resolution",
+        "0.1",
+        "--every",
+        "3",
+        "--particles",
+        "15",
+        "-q",
+        "--clean",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("results.json")).unwrap()).unwrap();
+    assert!(json["clean"].as_bool().unwrap() && auc(&json) == 1.0, "{json}");
 }
 
 /// `export --bt/--ot`: read back by our reader always, and by OctoMap's own `convert_octree`

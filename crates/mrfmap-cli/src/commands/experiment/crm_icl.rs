@@ -3,9 +3,9 @@
 //!
 //! As that paper does for its real data: a reference map from every noise-free frame (log-odds,
 //! OctoMap's settings), taken as the truth where it knows a voxel. Then CRM and log-odds are fed
-//! the frames one by one, noisy (as `add-noise` makes them; the paper's run used perfect depth,
-//! which `--model` cannot give, so this is the harder case), and every few frames both maps are
-//! scored against the reference: MAE, and PCC(sigma, |e|), the correlation between a voxel's
+//! the frames one by one, noisy as `add-noise` makes them (the harder case), or with `--clean`
+//! the noise-free frames as the paper's run was (CRM's forward model is the noise model's either
+//! way), and every few frames both maps are scored against the reference: MAE, and PCC(sigma, |e|), the correlation between a voxel's
 //! claimed standard deviation and its true error. Unobserved voxels count at each method's
 //! prior. Writes `report.md`, `results.json` and the two curves as PNG.
 
@@ -43,6 +43,10 @@ pub struct Args {
     /// CRM particles per voxel.
     #[arg(long, default_value_t = 101, value_parser = clap::value_parser!(u16).range(2..))]
     particles: u16,
+    /// Feed both maps the noise-free frames, as the paper's run did ("perfect depth"), instead
+    /// of the noisy ones; CRM still infers with the noise model's forward model.
+    #[arg(long)]
+    clean: bool,
 }
 
 /// Both methods' scores after `frames` frames.
@@ -64,6 +68,14 @@ pub fn crm_icl(a: Args) -> Result<()> {
         check_build(config, dataset_extent(&clean, &all, config)?, BUILD_ADVICE)?;
     }
     let (noisy, _) = noisy_copy(&clean, &a.output, &a.noise)?;
+    let fed = |i: usize| -> Result<mrfmap::frames::Frame> {
+        if !a.clean {
+            return Ok(noisy.frame(i)?);
+        }
+        let mut frame = clean.frame(i)?;
+        frame.noise = noisy.noise().cloned();
+        Ok(frame)
+    };
 
     let t = Instant::now();
     let truth = build_map(&all, &logodds_config, |i| clean.frame(i))?.map;
@@ -76,7 +88,7 @@ pub fn crm_icl(a: Args) -> Result<()> {
     let mut steps = Vec::new();
     let bar = crate::progress::bar(Some(noisy.len()), "crm, log-odds");
     for i in 0..noisy.len() {
-        let frame = noisy.frame(i)?;
+        let frame = fed(i)?;
         let t = Instant::now();
         crm.integrate(&frame)?;
         seconds.0 += t.elapsed().as_secs_f64();
@@ -112,8 +124,8 @@ pub fn crm_icl(a: Args) -> Result<()> {
     let _ = writeln!(
         report,
         "Reference: log-odds (OctoMap) from all {} noise-free frames at {} m ({} known voxels, {} occupied; {:.1} s). \
-         CRM ({} particles, the noise's forward model) and log-odds (OctoMap) fed the frames one by one with `{}` \
-         noise (seed {}), scored every {} frames over the reference's known voxels (unobserved ones at each \
+         CRM ({} particles, the `{}` noise's forward model) and log-odds (OctoMap) fed the frames one by one, {} \
+         (seed {}), scored every {} frames over the reference's known voxels (unobserved ones at each \
          method's prior).\n\nCRM's PCC(sigma, |e|) is above log-odds' at {pcc_above} of {} steps; its MAE is no \
          worse at {mae_no_worse} of {}. Curves: `mae.png`, `pcc.png`.\n\n\
          | frames | MAE CRM | MAE log-odds | PCC CRM | PCC log-odds | AUC CRM | AUC log-odds | I_c(2) CRM | I_c(2) log-odds |\n\
@@ -125,6 +137,7 @@ pub fn crm_icl(a: Args) -> Result<()> {
         reference_seconds,
         a.particles,
         a.noise.model,
+        if a.clean { "noise-free, as the paper's run" } else { "noisy" },
         a.noise.seed,
         a.every,
         steps.len(),
@@ -150,6 +163,7 @@ pub fn crm_icl(a: Args) -> Result<()> {
     let json = serde_json::json!({
         "dataset": a.dataset.display().to_string(),
         "model": a.noise.model,
+        "clean": a.clean,
         "seed": a.noise.seed,
         "resolution": a.resolution,
         "reference_voxels": truth.voxels.len(),

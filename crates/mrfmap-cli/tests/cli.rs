@@ -643,6 +643,28 @@ fn crm_icl_experiment_writes_its_curves() {
     let json: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("results.json")).unwrap()).unwrap();
     assert!(json["clean"].as_bool().unwrap() && auc(&json) == 1.0, "{json}");
+    // Against the frames' surfaces instead (`surface_truth`, tested on its own).
+    let o = run(&[
+        "experiment",
+        "crm-icl",
+        s(&data),
+        "-o",
+        s(&out),
+        "--resolution",
+        "0.1",
+        "--every",
+        "3",
+        "--particles",
+        "15",
+        "-q",
+        "--clean",
+        "--reference",
+        "surface",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("results.json")).unwrap()).unwrap();
+    assert!(json["reference"] == "surface" && json["reference_occupied"].as_u64().unwrap() > 0, "{json}");
 }
 
 /// `export --bt/--ot`: read back by our reader always, and by OctoMap's own `convert_octree`

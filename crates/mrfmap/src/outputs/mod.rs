@@ -25,8 +25,8 @@ mod query;
 
 pub use evaluation::{
     AccuracyParams, PeakRule, PixelClass, ProfileStep, RayVerdict, Scorer, TruthMetrics, VISIBILITY_FLOOR, ViewScore,
-    VoxelTruth, grid_world_truths, mean_sigma, metrics_of, pearson, roc_auc, score_view, true_occupancy, truth_metrics,
-    voxel_truths,
+    VoxelTruth, grid_world_truths, mean_sigma, metrics_of, pearson, roc_auc, score_view, surface_truth, true_occupancy,
+    truth_metrics, voxel_truths,
 };
 pub use files::{
     FREE_THRESH, Grid2dFiles, MapServerGrid, OCCUPIED_THRESH, OctomapFormat, OctomapLeaf, OctomapSummary, OctomapTree,

@@ -2,7 +2,9 @@
 //! of noise-free depth.
 //!
 //! As that paper does for its real data: a reference map from every noise-free frame (log-odds,
-//! OctoMap's settings), taken as the truth where it knows a voxel. Then CRM and log-odds are fed
+//! OctoMap's settings), taken as the truth where it knows a voxel; or with `--reference
+//! surface` the frames' surfaces themselves ([`surface_truth`]: occupied where a depth point
+//! falls, free where only rays pass), which does not favour log-odds. Then CRM and log-odds are fed
 //! the frames one by one, noisy as `add-noise` makes them (the harder case), or with `--clean`
 //! the noise-free frames as the paper's run was (CRM's forward model is the noise model's either
 //! way), and every few frames both maps are scored against the reference: MAE, and PCC(sigma, |e|), the correlation between a voxel's
@@ -16,7 +18,7 @@ use std::time::Instant;
 use anyhow::Result;
 use mrfmap::inference::{EngineConfig, EngineKind, check_build, new_engine};
 use mrfmap::outputs::pictures::write_text;
-use mrfmap::outputs::{Series, line_plot};
+use mrfmap::outputs::{Series, line_plot, surface_truth};
 use mrfmap::source::Dataset;
 
 use super::{Method, Scores, noisy_copy, score};
@@ -47,6 +49,18 @@ pub struct Args {
     /// of the noisy ones; CRM still infers with the noise model's forward model.
     #[arg(long)]
     clean: bool,
+    /// What the maps are scored against: a log-odds (OctoMap) map of every noise-free frame, or
+    /// their surfaces alone (a voxel occupied where a depth point falls in it, free where rays
+    /// only pass), which does not favour log-odds.
+    #[arg(long, value_enum, default_value = "logodds")]
+    reference: Reference,
+}
+
+/// What `crm-icl` scores the maps against.
+#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum Reference {
+    Logodds,
+    Surface,
 }
 
 /// Both methods' scores after `frames` frames.
@@ -78,7 +92,11 @@ pub fn crm_icl(a: Args) -> Result<()> {
     };
 
     let t = Instant::now();
-    let truth = build_map(&all, &logodds_config, |i| clean.frame(i))?.map;
+    let truth = match a.reference {
+        Reference::Logodds => build_map(&all, &logodds_config, |i| clean.frame(i))?.map.voxels,
+        Reference::Surface => surface_truth(all.iter().map(|&i| clean.frame(i)), a.resolution, &logodds_config.limits)?,
+    };
+    let occupied = truth.iter().filter(|(_, v)| v.occupancy > 0.5).count();
     let reference_seconds = t.elapsed().as_secs_f64();
 
     let mut crm = new_engine(&crm_config)?;
@@ -123,17 +141,21 @@ pub fn crm_icl(a: Args) -> Result<()> {
         format!("# CRM paper, ICL-NUIM experiment (sec. 8.3.2, Figs. 15-16) on `{}`\n\n", a.dataset.display());
     let _ = writeln!(
         report,
-        "Reference: log-odds (OctoMap) from all {} noise-free frames at {} m ({} known voxels, {} occupied; {:.1} s). \
+        "Reference: {} from all {} noise-free frames at {} m ({} known voxels, {} occupied; {:.1} s). \
          CRM ({} particles, the `{}` noise's forward model) and log-odds (OctoMap) fed the frames one by one, {} \
          (seed {}), scored every {} frames over the reference's known voxels (unobserved ones at each \
          method's prior).\n\nCRM's PCC(sigma, |e|) is above log-odds' at {pcc_above} of {} steps; its MAE is no \
          worse at {mae_no_worse} of {}. Curves: `mae.png`, `pcc.png`.\n\n\
          | frames | MAE CRM | MAE log-odds | PCC CRM | PCC log-odds | AUC CRM | AUC log-odds | I_c(2) CRM | I_c(2) log-odds |\n\
          |---|---|---|---|---|---|---|---|---|",
+        match a.reference {
+            Reference::Logodds => "log-odds (OctoMap)",
+            Reference::Surface => "the surfaces (occupied where a depth point falls, free where rays only pass)",
+        },
         clean.len(),
         a.resolution,
-        truth.voxels.len(),
-        truth.occupied_count(),
+        truth.len(),
+        occupied,
         reference_seconds,
         a.particles,
         a.noise.model,
@@ -166,8 +188,9 @@ pub fn crm_icl(a: Args) -> Result<()> {
         "clean": a.clean,
         "seed": a.noise.seed,
         "resolution": a.resolution,
-        "reference_voxels": truth.voxels.len(),
-        "reference_occupied": truth.occupied_count(),
+        "reference": if a.reference == Reference::Surface { "surface" } else { "logodds" },
+        "reference_voxels": truth.len(),
+        "reference_occupied": occupied,
         "steps": steps.iter().map(|s| serde_json::json!({
             "frames": s.frames, "crm": s.crm.json(), "logodds": s.logodds.json(),
         })).collect::<Vec<_>>(),

@@ -174,7 +174,7 @@ pub(super) fn crm_laser(a: Args) -> Result<()> {
             Method::LogOdds(_) => "logodds-paper-ism".to_string(),
         };
         picture(&map, &a.output.join(format!("{name}.png")))?;
-        rows.push(score(method.label(), &truth, &map, method.prior(), seconds));
+        rows.push(score(method.label(), &truth.voxels, &map, method.prior(), seconds));
         tracing::info!("{} done", method.label());
     }
     let swept: Vec<Scores> = sweep()
@@ -182,7 +182,7 @@ pub(super) fn crm_laser(a: Args) -> Result<()> {
         .map(|model| {
             let method = Method::LogOdds(model);
             let (map, seconds) = method.run(&subset, r)?;
-            Ok(score(method.label(), &truth, &map, method.prior(), seconds))
+            Ok(score(method.label(), &truth.voxels, &map, method.prior(), seconds))
         })
         .collect::<Result<_>>()?;
     picture(&truth, &a.output.join("reference.png"))?;

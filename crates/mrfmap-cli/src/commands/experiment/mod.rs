@@ -25,7 +25,7 @@ use mrfmap::source::{Dataset, NoisySummary};
 use crate::commands::noise::NoiseArgs;
 use mrfmap::frames::RangeScan;
 use mrfmap::inference::{CrmEngine, CrmParams, Engine, LogOddsEngine, LogOddsParams, SensorModel};
-use mrfmap::map::Map;
+use mrfmap::map::{Grid, Map, MapVoxel};
 use mrfmap::outputs::{VoxelTruth, pearson, roc_auc};
 
 #[derive(clap::Args)]
@@ -163,10 +163,10 @@ impl Scores {
     }
 }
 
-/// `map`'s cells against the reference's known cells; unobserved cells at `prior`.
-fn score(label: String, reference: &Map, map: &Map, prior: (f64, f64), seconds: f64) -> Scores {
+/// `map`'s cells against the reference's known cells (occupied above 1/2); unobserved cells at
+/// `prior`.
+fn score(label: String, reference: &Grid<MapVoxel>, map: &Map, prior: (f64, f64), seconds: f64) -> Scores {
     let cells: Vec<VoxelTruth> = reference
-        .voxels
         .iter()
         .map(|(k, r)| {
             let truth = if r.occupancy > 0.5 { 1.0 } else { 0.0 };
@@ -189,7 +189,7 @@ fn score(label: String, reference: &Map, map: &Map, prior: (f64, f64), seconds: 
         beyond_125: beyond(1.25),
         beyond_2: beyond(2.0),
         pcc: pearson(&sigmas, &errors),
-        observed: reference.voxels.iter().filter(|(k, _)| map.voxels.get(*k).is_some()).count(),
+        observed: reference.iter().filter(|(k, _)| map.voxels.get(*k).is_some()).count(),
         seconds,
     }
 }

@@ -8,8 +8,13 @@
 //! `I_c = sum max(0, |e| - gamma sigma)` for gamma 0.5 and 2 (as sums, and per voxel), and
 //! the Pearson correlation of `sigma` with `|e|`; and, for a planner that thresholds at 1/2,
 //! the precision and recall of the occupied voxels (`m > 0.5`) against `truth >= 0.5`.
+//!
+//! Scenes with no analytic model but noise-free depth (rendered datasets) get a reference from
+//! that depth alone, [`surface_truth`].
 
-use crate::map::{Map, MapVoxel, VoxelKey};
+use crate::frames::Frame;
+use crate::map::{Grid, Map, MapVoxel, VoxelKey};
+use crate::rays::{Projector, RayLimits};
 use crate::source::{GridWorld, Scene};
 
 /// Lattice points per axis used for a voxel's true occupancy.
@@ -71,6 +76,57 @@ pub fn true_occupancy(scene: &Scene, key: VoxelKey, r: f64) -> f64 {
         inside += scene.contains(p) as usize;
     }
     inside as f64 / (SAMPLES * SAMPLES * SAMPLES) as f64
+}
+
+/// A reference occupancy grid from noise-free depth alone, with no inverse sensor model: a
+/// voxel is occupied (1) where a depth point of some frame falls in it, free (0) where some
+/// frame's ray crosses it and no depth point of any frame falls in it; voxels no ray reaches
+/// are left out. Rays are OctoMap's segments within `limits` (as the log-odds engine casts
+/// them). Unlike a log-odds map of the same frames, a surface stays occupied however many
+/// rays graze it, and the reference does not favour log-odds for being log-odds: what the
+/// CRM paper's ICL-NUIM ground truth, from the scene's surface model, stands for where the
+/// frames see.
+///
+/// ```
+/// use mrfmap::frames::{Camera, DepthImage, Frame, look_at};
+/// use mrfmap::outputs::surface_truth;
+/// use mrfmap::rays::RayLimits;
+/// use nalgebra::Vector3;
+/// let camera = Camera::new(50.0, 50.0, 15.5, 15.5, 32, 32, 1000.0).unwrap();
+/// let mut depth = DepthImage::new(32, 32);
+/// for v in 0..32 { for u in 0..32 { depth.set(u, v, 1.0); } }
+/// let pose = look_at(Vector3::new(0.01, 0.01, 0.01), Vector3::new(1.0, 0.01, 0.01)).unwrap();
+/// let frame = Frame { index: 0, timestamp: 0.0, depth, pose, camera, noise: None };
+/// let truth = surface_truth([Ok(frame.clone())], 0.05, &RayLimits::default()).unwrap();
+/// // The wall 1 m ahead is at x = 1.01, voxel column 20: occupied there, free in front.
+/// let at = |t: &mrfmap::map::Grid<mrfmap::map::MapVoxel>, x: i32| t.get(mrfmap::map::VoxelKey([x, 0, 0])).map(|v| v.occupancy);
+/// assert_eq!((at(&truth, 20), at(&truth, 10), at(&truth, 21)), (Some(1.0), Some(0.0), None));
+/// // A second frame sees through where the first saw the wall, to 2 m: the wall's voxel
+/// // stays occupied (a log-odds map of the two would call it free or undecided).
+/// let mut far = frame.clone();
+/// for v in 0..32 { for u in 0..32 { far.depth.set(u, v, 2.0); } }
+/// let truth = surface_truth([Ok(frame), Ok(far)], 0.05, &RayLimits::default()).unwrap();
+/// assert_eq!((at(&truth, 20), at(&truth, 30), at(&truth, 40)), (Some(1.0), Some(0.0), Some(1.0)));
+/// ```
+pub fn surface_truth(
+    frames: impl IntoIterator<Item = crate::Result<Frame>>,
+    resolution: f64,
+    limits: &RayLimits,
+) -> crate::Result<Grid<MapVoxel>> {
+    let (free, occupied) = (MapVoxel { occupancy: 0.0, variance: 0.0 }, MapVoxel { occupancy: 1.0, variance: 0.0 });
+    let mut truth = Grid::new(resolution)?;
+    let mut projector = Projector::default();
+    for frame in frames {
+        let seen = projector.crossed_voxels(&frame?, limits, resolution, None);
+        // Crossed voxels enter free (an occupied one stays so); then this frame's surfaces.
+        for (brick, mask) in &seen.crossed {
+            truth.brick_or_insert(*brick).update_slots(mask, free, |_| {});
+        }
+        for &key in &seen.ends {
+            truth.insert(key, occupied);
+        }
+    }
+    Ok(truth)
 }
 
 /// Mean and standard deviation the metrics use for a map voxel.

@@ -592,23 +592,13 @@ fn crm_icl_experiment_writes_its_curves() {
     let dir = workdir("crm-icl");
     let data = dataset(&dir);
     let out = dir.join("icl");
-    let o = run(&[
-        "experiment",
-        "crm-icl",
-        s(&data),
-        "-o",
-        s(&out),
-        "--resolution",
-        "0.1",
-        "--every",
-        "3",
-        "--particles",
-        "15",
-        "-q",
-    ]);
-    assert!(o.status.success(), "{}", stderr(&o));
-    let json: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("results.json")).unwrap()).unwrap();
+    let experiment = |extra: &[&str]| -> serde_json::Value {
+        let base = ["experiment", "crm-icl", s(&data), "-o", s(&out), "--resolution", "0.1", "--every", "3"];
+        let o = run(&[&base[..], &["--particles", "15", "-q"], extra].concat());
+        assert!(o.status.success(), "{}", stderr(&o));
+        serde_json::from_str(&std::fs::read_to_string(out.join("results.json")).unwrap()).unwrap()
+    };
+    let json = experiment(&[]);
     let steps = json["steps"].as_array().unwrap();
     assert_eq!(steps.iter().map(|s| s["frames"].as_u64().unwrap()).collect::<Vec<_>>(), vec![3, 4]);
     for s in steps {
@@ -624,46 +614,10 @@ fn crm_icl_experiment_writes_its_curves() {
     // itself, so it ranks every voxel right (AUC 1), which it does not with noise.
     let auc = |json: &serde_json::Value| json["steps"][1]["logodds"]["auc"].as_f64().unwrap();
     assert!(auc(&json) < 1.0, "{json}");
-    let o = run(&[
-        "experiment",
-        "crm-icl",
-        s(&data),
-        "-o",
-        s(&out),
-        "--resolution",
-        "0.1",
-        "--every",
-        "3",
-        "--particles",
-        "15",
-        "-q",
-        "--clean",
-    ]);
-    assert!(o.status.success(), "{}", stderr(&o));
-    let json: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("results.json")).unwrap()).unwrap();
+    let json = experiment(&["--clean"]);
     assert!(json["clean"].as_bool().unwrap() && auc(&json) == 1.0, "{json}");
     // Against the frames' surfaces instead (`surface_truth`, tested on its own).
-    let o = run(&[
-        "experiment",
-        "crm-icl",
-        s(&data),
-        "-o",
-        s(&out),
-        "--resolution",
-        "0.1",
-        "--every",
-        "3",
-        "--particles",
-        "15",
-        "-q",
-        "--clean",
-        "--reference",
-        "surface",
-    ]);
-    assert!(o.status.success(), "{}", stderr(&o));
-    let json: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("results.json")).unwrap()).unwrap();
+    let json = experiment(&["--clean", "--reference", "surface"]);
     assert!(json["reference"] == "surface" && json["reference_occupied"].as_u64().unwrap() > 0, "{json}");
 }
 

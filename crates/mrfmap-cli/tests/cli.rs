@@ -592,13 +592,14 @@ fn crm_icl_experiment_writes_its_curves() {
     let dir = workdir("crm-icl");
     let data = dataset(&dir);
     let out = dir.join("icl");
-    let experiment = |extra: &[&str]| -> serde_json::Value {
-        let base = ["experiment", "crm-icl", s(&data), "-o", s(&out), "--resolution", "0.1", "--every", "3"];
+    // (A folder of its own per run: `--clean` writes no noisy copy, so creates it alone.)
+    let experiment = |out: &std::path::Path, extra: &[&str]| -> serde_json::Value {
+        let base = ["experiment", "crm-icl", s(&data), "-o", s(out), "--resolution", "0.1", "--every", "3"];
         let o = run(&[&base[..], &["--particles", "15", "-q"], extra].concat());
         assert!(o.status.success(), "{}", stderr(&o));
         serde_json::from_str(&std::fs::read_to_string(out.join("results.json")).unwrap()).unwrap()
     };
-    let json = experiment(&[]);
+    let json = experiment(&out, &[]);
     let steps = json["steps"].as_array().unwrap();
     assert_eq!(steps.iter().map(|s| s["frames"].as_u64().unwrap()).collect::<Vec<_>>(), vec![3, 4]);
     for s in steps {
@@ -614,10 +615,10 @@ fn crm_icl_experiment_writes_its_curves() {
     // itself, so it ranks every voxel right (AUC 1), which it does not with noise.
     let auc = |json: &serde_json::Value| json["steps"][1]["logodds"]["auc"].as_f64().unwrap();
     assert!(auc(&json) < 1.0, "{json}");
-    let json = experiment(&["--clean"]);
+    let json = experiment(&dir.join("clean"), &["--clean"]);
     assert!(json["clean"].as_bool().unwrap() && auc(&json) == 1.0, "{json}");
     // Against the frames' surfaces instead (`surface_truth`, tested on its own).
-    let json = experiment(&["--clean", "--reference", "surface"]);
+    let json = experiment(&dir.join("surface"), &["--clean", "--reference", "surface"]);
     assert!(json["reference"] == "surface" && json["reference_occupied"].as_u64().unwrap() > 0, "{json}");
 }
 

@@ -15,7 +15,7 @@ use std::fmt::Write as _;
 use std::path::PathBuf;
 use std::time::Instant;
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use mrfmap::inference::{EngineConfig, EngineKind, check_build, new_engine};
 use mrfmap::outputs::pictures::write_text;
 use mrfmap::outputs::{Series, line_plot, surface_truth};
@@ -30,8 +30,8 @@ use mrfmap::pipeline::{BUILD_ADVICE, dataset_extent};
 pub struct Args {
     /// Dataset of noise-free depth (TUM / ICL-NUIM layout), e.g. icl-livingroom1.
     dataset: PathBuf,
-    /// Output folder: report.md, results.json, mae.png, pcc.png, and the noisy dataset in
-    /// noisy/ (replaced on every run).
+    /// Output folder: report.md, results.json, mae.png, pcc.png, and (without `--clean`) the
+    /// noisy dataset in noisy/ (replaced on every run).
     #[arg(short, long)]
     output: PathBuf,
     #[command(flatten)]
@@ -57,10 +57,20 @@ pub struct Args {
 }
 
 /// What `crm-icl` scores the maps against.
-#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+#[derive(Clone, Copy, clap::ValueEnum)]
 enum Reference {
     Logodds,
     Surface,
+}
+
+impl Reference {
+    /// The name `--reference` takes.
+    fn name(self) -> &'static str {
+        match self {
+            Reference::Logodds => "logodds",
+            Reference::Surface => "surface",
+        }
+    }
 }
 
 /// Both methods' scores after `frames` frames.
@@ -81,13 +91,16 @@ pub fn crm_icl(a: Args) -> Result<()> {
     for config in [&logodds_config, &crm_config] {
         check_build(config, dataset_extent(&clean, &all, config)?, BUILD_ADVICE)?;
     }
-    let (noisy, _) = noisy_copy(&clean, &a.output, &a.noise)?;
+    std::fs::create_dir_all(&a.output).with_context(|| format!("creating {}", a.output.display()))?;
+    // Noise-free frames need only the noise's forward model: no noisy copy is written.
+    let noisy = if a.clean { None } else { Some(noisy_copy(&clean, &a.output, &a.noise)?.0) };
+    let forward = std::sync::Arc::new(a.noise.noise()?.forward_model(clean.camera()));
     let fed = |i: usize| -> Result<mrfmap::frames::Frame> {
-        if !a.clean {
+        if let Some(noisy) = &noisy {
             return Ok(noisy.frame(i)?);
         }
         let mut frame = clean.frame(i)?;
-        frame.noise = noisy.noise().cloned();
+        frame.noise = Some(forward.clone());
         Ok(frame)
     };
 
@@ -104,8 +117,8 @@ pub fn crm_icl(a: Args) -> Result<()> {
     let (crm_prior, logodds_prior) = (Method::Crm(a.particles as usize).prior(), (0.5, 0.5));
     let mut seconds = (0.0, 0.0);
     let mut steps = Vec::new();
-    let bar = crate::progress::bar(Some(noisy.len()), "crm, log-odds");
-    for i in 0..noisy.len() {
+    let bar = crate::progress::bar(Some(clean.len()), "crm, log-odds");
+    for i in 0..clean.len() {
         let frame = fed(i)?;
         let t = Instant::now();
         crm.integrate(&frame)?;
@@ -114,7 +127,7 @@ pub fn crm_icl(a: Args) -> Result<()> {
         logodds.integrate(&frame)?;
         seconds.1 += t.elapsed().as_secs_f64();
         let frames = i + 1;
-        if frames % a.every as usize == 0 || frames == noisy.len() {
+        if frames % a.every as usize == 0 || frames == clean.len() {
             steps.push(Step {
                 frames,
                 crm: score("crm".into(), &truth, &crm.map(), crm_prior, seconds.0),
@@ -188,7 +201,7 @@ pub fn crm_icl(a: Args) -> Result<()> {
         "clean": a.clean,
         "seed": a.noise.seed,
         "resolution": a.resolution,
-        "reference": if a.reference == Reference::Surface { "surface" } else { "logodds" },
+        "reference": a.reference.name(),
         "reference_voxels": truth.len(),
         "reference_occupied": occupied,
         "steps": steps.iter().map(|s| serde_json::json!({

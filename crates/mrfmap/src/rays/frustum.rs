@@ -46,7 +46,7 @@ pub struct CrossedVoxels {
 }
 
 /// Finds the voxels a depth image's rays cross by projection (see the module documentation).
-/// It keeps its per-pixel buffers (about 50 bytes per pixel) from one frame to the next:
+/// It keeps its per-pixel buffers (about 34 bytes per pixel) from one frame to the next:
 /// allocating them afresh cost a tenth of the time in page faults.
 ///
 /// ```

@@ -37,6 +37,7 @@ const EXP_TAYLOR: [f64; 10] = [
 ///
 /// `x = k ln 2 + r` with `|r| <= ln 2 / 2`; `e^r` by its Taylor series to `r^11` (truncation
 /// below 7e-15 relative); `2^k` written straight into a double's exponent bits.
+#[inline(always)] // (so that the AVX2 copy of a tile trace has it in four lanes)
 pub(crate) fn exp_in_place(xs: &mut [f64]) {
     for x in xs.iter_mut() {
         let v = x.clamp(-700.0, 700.0);
@@ -65,6 +66,7 @@ const ATANH_SERIES: [f64; 8] =
 ///
 /// `y = 2^e m` with `m` in `[sqrt(1/2), sqrt(2))`; `ln m = 2 atanh(s)`, `s = (m - 1) / (m + 1)`,
 /// `|s| <= 0.172`, by its series to `s^17` (truncation below 2e-16).
+#[inline(always)] // (so that the AVX2 copy of a tile trace has it in four lanes)
 pub(crate) fn ln_clamped_in_place(ys: &mut [f64], bound: f64) {
     const MANTISSA: u64 = (1 << 52) - 1;
     // `e^-bound` and `e^bound` are normal doubles: clamping first keeps zeros, infinities

@@ -75,6 +75,7 @@ pub const MAX_LOG_ODDS: f64 = 20.723_265_836_146_06; // ln((1 - MU_EPS) / MU_EPS
 /// `1 / (1 + e)` computed off the chain. A message is `+-bound` where one side is exactly
 /// zero, and 0 where both are (the ray says nothing). The logarithms are taken in one
 /// vectorised pass at the end.
+#[inline(always)] // (so that the AVX2 copy of a tile trace has it in four lanes)
 pub fn ray_log_messages(odds: &[f64], nu: &[f64], nu_beyond: f64, bound: f64, out: &mut Vec<f64>) {
     let n = odds.len();
     debug_assert_eq!(n, nu.len());

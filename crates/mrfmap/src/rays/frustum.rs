@@ -46,7 +46,7 @@ pub struct CrossedVoxels {
 }
 
 /// Finds the voxels a depth image's rays cross by projection (see the module documentation).
-/// It keeps its per-pixel buffers (about 34 bytes per pixel) from one frame to the next:
+/// It keeps its per-pixel buffers (about 26 bytes per pixel) from one frame to the next:
 /// allocating them afresh cost a tenth of the time in page faults.
 ///
 /// ```
@@ -182,17 +182,17 @@ fn walk_brick(
     }
 }
 
-/// `1 / d` per component, in f32, with one division instead of three (divisions were a fifth
+/// `s / d` per component, in f32, with one division instead of three (divisions were a fifth
 /// of the per-pixel setup). Components that are zero (or a product too small to invert
 /// accurately) take the plain route.
 #[inline]
-fn reciprocals(d: [f64; 3]) -> [f32; 3] {
+fn reciprocals(d: [f64; 3], s: f64) -> [f32; 3] {
     let p = d[0] * d[1] * d[2];
     if p.abs() > 1e-100 {
-        let q = 1.0 / p;
+        let q = s / p;
         [(d[1] * d[2] * q) as f32, (d[0] * d[2] * q) as f32, (d[0] * d[1] * q) as f32]
     } else {
-        d.map(|x| 1.0 / x as f32)
+        d.map(|x| (s / x) as f32)
     }
 }
 
@@ -225,29 +225,37 @@ enum Seen {
 struct Segments {
     width: usize,
     height: usize,
+    /// Each pixel's segment; their camera-z depths are level 0 of the depth pyramid.
     pixels: Vec<PixelSegment>,
-    /// Level 0 of the depth pyramid: each pixel's camera-z segment.
-    depths: Vec<PixelDepths>,
     /// Depth bounds per pyramid level 1, 2, ... (`levels[k - 1]`: blocks of `2^k x 2^k`).
     levels: Vec<Level>,
 }
 
-/// One pixel's segment: reciprocal world direction (for slab tests) and range interval
-/// `[start, end]`; `start > end` marks a pixel without a segment.
+/// One pixel's segment, parametrised by camera depth: the reciprocal of the world direction
+/// that advances one metre of camera z (for slab tests), and the segment's camera depths,
+/// which are also the pyramid's level 0 (one array for both: 20 bytes a pixel, where a range
+/// parametrisation needed 8 more for the depths).
 #[derive(Clone, Copy, Debug)]
 struct PixelSegment {
     inv_dir: [f32; 3],
-    start: f32,
-    end: f32,
+    depths: PixelDepths,
 }
 
 impl PixelSegment {
-    const NONE: PixelSegment = PixelSegment { inv_dir: [0.0; 3], start: 1.0, end: 0.0 };
+    /// No segment: its depths are empty, so no slab test passes.
+    const NONE: PixelSegment = PixelSegment { inv_dir: [0.0; 3], depths: PixelDepths::NONE };
+}
+
+impl From<PixelSegment> for Bounds {
+    #[inline]
+    fn from(p: PixelSegment) -> Bounds {
+        p.depths.into()
+    }
 }
 
 /// One pixel's segment in camera z, `[start, end]`: the pyramid's level 0. Its [`Bounds`]
 /// (one pixel's four bounds are two numbers twice) are made when read, so it takes 8 bytes a
-/// pixel where they took 16 (2.5 MB of a 640 x 480 frame's peak).
+/// pixel where they took 16.
 #[derive(Clone, Copy, Debug)]
 struct PixelDepths([f32; 2]);
 
@@ -336,13 +344,12 @@ impl Segments {
         (self.width, self.height) = (width, height);
         // Every pixel is written below, so only a change of size needs new buffers.
         self.pixels.resize(width * height, PixelSegment::NONE);
-        self.depths.resize(width * height, PixelDepths::NONE);
         self.levels.resize_with(self.levels.len().max(1), Level::default);
         let blocks = &mut self.levels[0];
         blocks.width = width.div_ceil(2);
         blocks.cells.resize(blocks.width * height.div_ceil(2), Bounds::NO_SEGMENT);
         let inv_r = 1.0 / resolution;
-        let fill_row = |v: usize, pixels: &mut [PixelSegment], depths: &mut [PixelDepths], ends: &mut Vec<VoxelKey>| {
+        let fill_row = |v: usize, pixels: &mut [PixelSegment], ends: &mut Vec<VoxelKey>| {
             // Each pixel is written once: those before `next_u` are done, the gap up to a
             // ray's pixel has no segment.
             let mut next_u = 0;
@@ -350,15 +357,15 @@ impl Segments {
             for ray in rays.row(v as u32) {
                 let u = ray.u as usize;
                 pixels[next_u..u].fill(PixelSegment::NONE);
-                depths[next_u..u].fill(PixelDepths::NONE);
                 next_u = u + 1;
                 let Some(seg) = limits.hit_miss_segment(&ray, resolution) else {
-                    (pixels[u], depths[u]) = (PixelSegment::NONE, PixelDepths::NONE);
+                    pixels[u] = PixelSegment::NONE;
                     continue;
                 };
-                pixels[u] =
-                    PixelSegment { inv_dir: reciprocals(ray.dir), start: seg.start as f32, end: seg.end as f32 };
-                depths[u] = PixelDepths([(seg.start * ray.cz) as f32, (seg.end * ray.cz) as f32]);
+                pixels[u] = PixelSegment {
+                    inv_dir: reciprocals(ray.dir, ray.cz),
+                    depths: PixelDepths([(seg.start * ray.cz) as f32, (seg.end * ray.cz) as f32]),
+                };
                 if seg.hits_surface {
                     // The end in voxel units; neighbouring pixels mostly end in the same voxel
                     // as the last one (`floor(q) == last` exactly when `last <= q < last + 1`),
@@ -372,22 +379,20 @@ impl Segments {
                 }
             }
             pixels[next_u..].fill(PixelSegment::NONE);
-            depths[next_u..].fill(PixelDepths::NONE);
         };
         // Pairs of rows, so each task also makes its row of 2 x 2 blocks while the pair is
         // in cache (as a separate pass it cost as much as a tenth of the setup).
         let rows: Vec<Vec<VoxelKey>> = self
             .pixels
             .par_chunks_mut(2 * width)
-            .zip(self.depths.par_chunks_mut(2 * width))
             .zip(blocks.cells.par_chunks_mut(blocks.width))
             .enumerate()
-            .map(|(pair, ((pixels, depths), block_row))| {
+            .map(|(pair, (pixels, block_row))| {
                 let mut ends = Vec::new();
-                for (dv, (p, d)) in pixels.chunks_mut(width).zip(depths.chunks_mut(width)).enumerate() {
-                    fill_row(2 * pair + dv, p, d, &mut ends);
+                for (dv, p) in pixels.chunks_mut(width).enumerate() {
+                    fill_row(2 * pair + dv, p, &mut ends);
                 }
-                let (upper, lower) = depths.split_at(width);
+                let (upper, lower) = pixels.split_at(width);
                 reduce_rows(upper, if lower.is_empty() { upper } else { lower }, block_row);
                 ends
             })
@@ -413,7 +418,7 @@ impl Segments {
         if k == 0 {
             for v in v0..v1 + 1 {
                 for u in u0..u1 + 1 {
-                    b = b.union(self.depths[v * self.width + u].into());
+                    b = b.union(self.pixels[v * self.width + u].into());
                 }
             }
             return b;
@@ -806,7 +811,8 @@ impl<'a> View<'a> {
         let lo: [f32; 3] = std::array::from_fn(|a| (key[a] as f64 * r - self.origin[a]) as f32);
         let hi: [f32; 3] = std::array::from_fn(|a| ((key[a] + 1) as f64 * r - self.origin[a]) as f32);
         let crosses = |u: usize, v: usize| {
-            let PixelSegment { inv_dir: inv, start, end } = self.seg.pixels[v * self.seg.width + u];
+            let PixelSegment { inv_dir: inv, depths: PixelDepths([start, end]) } =
+                self.seg.pixels[v * self.seg.width + u];
             let (mut t0, mut t1) = (start, end); // start > end: no segment, never crosses
             for a in 0..3 {
                 let (ta, tb) = (lo[a] * inv[a], hi[a] * inv[a]);
@@ -839,7 +845,7 @@ impl<'a> View<'a> {
         const K: usize = 2;
         let k = K.min(self.seg.levels.len());
         let blocks = &self.seg.levels[k - 1];
-        let (depths, width, (z_near, z_far)) = (&self.seg.depths, self.seg.width, (footprint.z_near, footprint.z_far));
+        let (pixels, width, (z_near, z_far)) = (&self.seg.pixels, self.seg.width, (footprint.z_near, footprint.z_far));
         (rect.v0 >> k..(rect.v1 >> k) + 1).any(|bv| {
             (rect.u0 >> k..(rect.u1 >> k) + 1).any(|bu| {
                 if blocks.cells[bv * blocks.width + bu].miss(z_near, z_far) {
@@ -849,7 +855,7 @@ impl<'a> View<'a> {
                 let (u0, u1) = ((bu << k).max(rect.u0), ((bu + 1) << k).min(rect.u1 + 1));
                 // Each pixel's depths first: two compares where the slab test is a dozen
                 // operations, and most pixels here end in front of the voxel.
-                (v0..v1).any(|v| (u0..u1).any(|u| !depths[v * width + u].miss(z_near, z_far) && crosses(u, v)))
+                (v0..v1).any(|v| (u0..u1).any(|u| !pixels[v * width + u].depths.miss(z_near, z_far) && crosses(u, v)))
             })
         })
     }

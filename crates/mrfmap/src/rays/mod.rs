@@ -108,24 +108,25 @@ impl CameraRays {
         #[cfg(target_arch = "x86_64")]
         if std::is_x86_feature_detected!("avx2") {
             // SAFETY: the processor has AVX2, checked just above.
-            return unsafe { row_norms_avx2(&self.xs, y) };
+            return unsafe { norms_of_row_avx2(&self.xs, y) };
         }
-        row_norms(&self.xs, y)
+        norms_of_row(&self.xs, y)
     }
 }
 
-/// [`row_norms`] in AVX2's four lanes where the processor has them: the square roots and
-/// divisions of a row, 1.5% of a projected frame at 0.05 m in SSE2's two lanes (the
-/// binary's baseline). No FMA: the results stay bit for bit those of `unit_ray`.
+/// [`norms_of_row`] in AVX2's four lanes where the processor has them. Computing the norms
+/// instead of reading them back made a projected frame at 0.05 m 4% slower in SSE2's two
+/// lanes (the binary's baseline) and 1% in these (BENCHMARKS.md, session 25). No FMA: the
+/// results stay bit for bit those of `unit_ray` (tested).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-fn row_norms_avx2(xs: &[f64], y: f64) -> (Vec<f64>, Vec<f64>) {
-    row_norms(xs, y)
+fn norms_of_row_avx2(xs: &[f64], y: f64) -> (Vec<f64>, Vec<f64>) {
+    norms_of_row(xs, y)
 }
 
 /// The z = 1 norms of camera rays `(x, y, 1)` for each `x` of `xs`, and their reciprocals.
 #[inline(always)]
-fn row_norms(xs: &[f64], y: f64) -> (Vec<f64>, Vec<f64>) {
+fn norms_of_row(xs: &[f64], y: f64) -> (Vec<f64>, Vec<f64>) {
     let y2 = y * y;
     // (`x * x + y * y + 1.0` evaluates left to right: the same sums as `unit_ray`.)
     let norms: Vec<f64> = xs.iter().map(|x| (x * x + y2 + 1.0).sqrt()).collect();
@@ -563,6 +564,27 @@ mod tests {
         }
         assert!(n > 2500);
         assert_eq!(cached.ray(64, 0), None, "outside the image");
+    }
+
+    #[test]
+    fn both_copies_of_the_row_norms_agree() {
+        let camera = Camera::new(481.2, -480.0, 319.5, 239.5, 64, 48, 5000.0).unwrap();
+        let mut rays = CameraRays::default();
+        let rays = rays.update(&camera);
+        for v in 0..48 {
+            let y = rays.ys[v];
+            let base = norms_of_row(&rays.xs, y);
+            // The norms are those of `unit_ray`, bit for bit.
+            for (u, &x) in rays.xs.iter().enumerate() {
+                let (_, norm, inv) = unit_ray(x, y);
+                assert_eq!((base.0[u].to_bits(), base.1[u].to_bits()), (norm.to_bits(), inv.to_bits()));
+            }
+            #[cfg(target_arch = "x86_64")]
+            if std::is_x86_feature_detected!("avx2") {
+                // SAFETY: the processor has AVX2, checked just above.
+                assert_eq!(unsafe { norms_of_row_avx2(&rays.xs, y) }, base, "row {v}");
+            }
+        }
     }
 
     #[test]

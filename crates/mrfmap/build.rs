@@ -4,9 +4,15 @@
 
 fn main() {
     let shared = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data");
-    println!("cargo::rerun-if-changed={}", shared.display());
     println!("cargo::rustc-check-cfg=cfg(shared_data)");
     if shared.is_dir() {
+        println!("cargo::rerun-if-changed={}", shared.display());
         println!("cargo::rustc-cfg=shared_data");
+    } else {
+        // A path that does not exist counts as changed on every build, so watching the missing
+        // folder made cargo compile the library again on every command in a plain clone.
+        // Without the data only a change of this script reruns it (after adding the data:
+        // `touch crates/mrfmap/build.rs`).
+        println!("cargo::rerun-if-changed=build.rs");
     }
 }

@@ -36,11 +36,17 @@ impl DepthImage {
         self.height
     }
 
-    /// Valid depth at `(u, v)`, `None` for no return (0, NaN, negative or infinite).
+    /// Whether depth `z` is a return: not 0, NaN, negative or infinite.
+    #[inline]
+    pub fn is_valid(z: f32) -> bool {
+        z > 0.0 && z.is_finite()
+    }
+
+    /// Valid depth at `(u, v)`, `None` for no return (see [`DepthImage::is_valid`]).
     #[inline]
     pub fn get(&self, u: u32, v: u32) -> Option<f32> {
         let z = self.data[v as usize * self.width as usize + u as usize];
-        (z > 0.0 && z.is_finite()).then_some(z)
+        Self::is_valid(z).then_some(z)
     }
 
     /// Sets the depth at `(u, v)` in metres.
@@ -62,6 +68,6 @@ impl DepthImage {
 
     /// Number of pixels with a valid return.
     pub fn valid_count(&self) -> usize {
-        self.data.iter().filter(|z| **z > 0.0 && z.is_finite()).count()
+        self.data.iter().filter(|z| Self::is_valid(**z)).count()
     }
 }

@@ -31,7 +31,7 @@ use rayon::prelude::*;
 use std::ops::ControlFlow;
 
 use super::{CameraRays, FrameRays, RayLimits, for_each_crossing};
-use crate::frames::{Camera, Frame};
+use crate::frames::{Camera, DepthImage, Frame};
 use crate::map::{Aabb, box_keys};
 use crate::map::{BRICK_EDGE, BrickKey, SlotMask, VoxelKey, floor_i32, mask_set};
 
@@ -92,7 +92,7 @@ impl Projector {
         let dense = dense_range(&frame.camera, resolution) as f32;
         // A sample of the pixels is plenty to see where most depths lie.
         let (mut near, mut far) = (0usize, 0usize);
-        for z in frame.depth.data().iter().step_by(7).filter(|z| **z > 0.0 && z.is_finite()) {
+        for z in frame.depth.data().iter().step_by(7).filter(|z| DepthImage::is_valid(**z)) {
             if *z <= dense { near += 1 } else { far += 1 }
         }
         near >= far

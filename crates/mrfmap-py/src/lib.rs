@@ -11,8 +11,8 @@ use std::sync::{Arc, Mutex};
 use mrfmap::Choice;
 use mrfmap::frames::{Beam, Camera, DepthImage, Frame, NoiseModel, Pose, RangeScan};
 use mrfmap::inference::{
-    Budget, BuildOptions, Engine, EngineConfig, EngineKind, Extent, KeyframeId, MrfEngine, check_build, frames_extent,
-    new_engine, scan_extent,
+    Budget, BuildOptions, Engine, EngineConfig, EngineKind, Extent, KeyframeId, MapOutput, MrfEngine, check_build,
+    frames_extent, new_engine, scan_extent,
 };
 use mrfmap::map::Aabb;
 use mrfmap::map::Map;
@@ -138,7 +138,7 @@ impl Mapper {
     /// refuses a build: `MemoryError`, before any allocation.
     fn check_memory(&self, extent: Option<Extent>) -> PyResult<()> {
         let advice = "use a coarser resolution or a max_range";
-        check_build(&self.config, extent, advice).map_err(py_err)
+        check_build(&self.config, extent, MapOutput::InMemory, advice).map_err(py_err)
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, Inner> {
@@ -932,7 +932,7 @@ fn build_dataset(py: Python<'_>, dataset: PathBuf, options: Option<&Bound<'_, Py
         let all: Vec<usize> = (0..spec.dataset.len()).collect();
         // Refused before any work, as `mrfmap build` refuses (MemoryError).
         let advice = "use a coarser resolution, or map less with bounds or max_range";
-        check_build(&spec.config, dataset_extent(&spec.dataset, &all, &spec.config)?, advice)?;
+        check_build(&spec.config, dataset_extent(&spec.dataset, &all, &spec.config)?, MapOutput::InMemory, advice)?;
         let mut frames = all.iter().map(|&i| spec.dataset.frame(i).map(|f| (i, f)));
         build(&spec.config, &mut frames, Some(all.len()), &mut (), None)
     })?;

@@ -1,6 +1,7 @@
 //! What every engine promises, checked for all three on one small simulated scene: the map
 //! does not depend on the number of threads; an empty frame and NaN depths are no readings;
-//! frames that see nothing inside the bounds leave the map empty; a map survives its file.
+//! frames that see nothing inside the bounds leave the map empty; a map survives its file,
+//! and an engine saved straight to a file writes the file its map would.
 
 use mrfmap::frames::{DepthImage, Frame};
 use mrfmap::inference::{EngineConfig, EngineKind, new_engine};
@@ -76,5 +77,20 @@ fn every_engine_keeps_the_engine_contract() {
         let back = Map::load(&path).unwrap();
         assert_eq!(voxels(&back), voxels(&map), "{kind}: map file round trip");
         assert_eq!((back.engine, back.has_variance, &back.params), (kind, map.has_variance, &map.params));
+
+        // Saved straight from the engine (what `mrfmap build` does), the same bytes as the
+        // engine's map with the same parameters added and saved, and the same counts.
+        let mut engine = new_engine(&config).unwrap();
+        fr.iter().for_each(|f| engine.integrate(f).unwrap());
+        engine.finish().unwrap();
+        let extra = std::collections::BTreeMap::from([("source".to_string(), "three views".to_string())]);
+        let mut whole = engine.map();
+        whole.params.extend(extra.clone());
+        whole.save(&path).unwrap();
+        let streamed = tmp.path().join("streamed.mrfmap");
+        let saved = engine.save_map(&streamed, &extra).unwrap();
+        assert_eq!(std::fs::read(&streamed).unwrap(), std::fs::read(&path).unwrap(), "{kind}: saved from the engine");
+        assert_eq!((saved.voxels, saved.occupied), (whole.voxels.len(), whole.occupied_count()), "{kind}");
+        assert!(saved.occupied > 10, "{kind}: {saved:?}");
     }
 }

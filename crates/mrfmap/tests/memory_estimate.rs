@@ -1,5 +1,5 @@
 //! The memory estimate against the heap a build really takes: every engine at 0.05, 0.02 and
-//! 0.01 m on a simulated room, within 2x either way (what `estimate_memory` promises, and
+//! 0.01 m on a simulated room, its map made in memory and saved from the engine, within 2x either way (what `estimate_memory` promises, and
 //! what a refusal before the build relies on).
 //!
 //! The heap is counted by a global allocator that forwards to the system's and keeps the
@@ -11,7 +11,7 @@ use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 use mrfmap::frames::Frame;
-use mrfmap::inference::{BASE_MEMORY, EngineConfig, EngineKind, estimate_memory, frames_extent, new_engine};
+use mrfmap::inference::{BASE_MEMORY, EngineConfig, EngineKind, MapOutput, estimate_memory, frames_extent, new_engine};
 use mrfmap::source::Scene;
 
 static NOW: AtomicUsize = AtomicUsize::new(0);
@@ -81,11 +81,12 @@ const SCENE: &str = "[camera]\nfx = 40.0\nfy = 40.0\ncx = 23.5\ncy = 17.5\nwidth
     [[sphere]]\ncenter = [1.2, 1.0, 0.4]\nradius = 0.4\n\
     [orbit]\ncenter = [0.0, 0.0, 0.5]\nradius = 1.5\nheight = 1.4\nviews = 6\n";
 
-/// Peak heap bytes of building `config`'s map from `frames`, and the estimate of the same
-/// (without the process around it, [`BASE_MEMORY`]).
-fn measure(config: &EngineConfig, frames: &[Frame]) -> (f64, f64) {
+/// Peak heap bytes of building `config`'s map from `frames` into `output`, and the estimate
+/// of the same (without the process around it, [`BASE_MEMORY`]).
+fn measure(config: &EngineConfig, frames: &[Frame], output: MapOutput) -> (f64, f64) {
     let extent = frames_extent(frames.iter().map(|f| f.pose), &frames[..2], config).expect("frames see the room");
-    let estimate = estimate_memory(config, &extent) - BASE_MEMORY;
+    let estimate = estimate_memory(config, &extent, output) - BASE_MEMORY;
+    let path = std::env::temp_dir().join(format!("mrfmap-memory-estimate-{}.mrfmap", std::process::id()));
     let base = NOW.load(Ordering::Relaxed);
     PEAK.store(base, Ordering::Relaxed);
     let mut engine = new_engine(config).unwrap();
@@ -93,9 +94,20 @@ fn measure(config: &EngineConfig, frames: &[Frame]) -> (f64, f64) {
         engine.integrate(f).unwrap();
     }
     engine.finish().unwrap();
-    let map = engine.map();
-    let peak = PEAK.load(Ordering::Relaxed) - base;
-    drop((map, engine));
+    let peak = match output {
+        MapOutput::InMemory => {
+            let map = engine.map();
+            let peak = PEAK.load(Ordering::Relaxed) - base;
+            drop((map, engine));
+            peak
+        }
+        MapOutput::Saved => {
+            let saved = engine.save_map(&path, &Default::default()).unwrap();
+            assert!(saved.voxels > 0);
+            std::fs::remove_file(&path).unwrap();
+            PEAK.load(Ordering::Relaxed) - base
+        }
+    };
     (estimate, peak as f64)
 }
 
@@ -109,15 +121,17 @@ fn estimates_are_within_twice_the_measured_peak_for_every_engine_and_resolution(
             let mut config = EngineConfig::new(kind, resolution);
             // Few particles keep CRM at 0.01 m to a few hundred MB; the estimate scales with them.
             config.crm.particles = 21;
-            let (estimate, peak) = measure(&config, &frames);
-            report.push(format!(
-                "{kind} {resolution} m: estimate {:.1} MiB, peak {:.1} MiB, ratio {:.2}",
-                estimate / 1048576.0,
-                peak / 1048576.0,
-                estimate / peak
-            ));
-            assert!(peak > 0.0);
-            assert!((0.5..=2.0).contains(&(estimate / peak)), "{}", report.join("\n"));
+            for output in [MapOutput::InMemory, MapOutput::Saved] {
+                let (estimate, peak) = measure(&config, &frames, output);
+                report.push(format!(
+                    "{kind} {resolution} m {output:?}: estimate {:.1} MiB, peak {:.1} MiB, ratio {:.2}",
+                    estimate / 1048576.0,
+                    peak / 1048576.0,
+                    estimate / peak
+                ));
+                assert!(peak > 0.0);
+                assert!((0.5..=2.0).contains(&(estimate / peak)), "{}", report.join("\n"));
+            }
         }
     }
     eprintln!("{}", report.join("\n"));

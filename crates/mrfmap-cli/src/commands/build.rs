@@ -7,14 +7,14 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 
-use super::options::{BagArgs, LaserOptions, MapOptions, build_map, check_output_folder};
+use super::options::{BagArgs, LaserOptions, MapOptions, build_engine_of, check_output_folder};
 use crate::progress::Bars;
 use mrfmap::atomic_file::write_atomic;
 use mrfmap::frames::{Frame, RangeScan};
-use mrfmap::inference::{Budget, EngineConfig, EngineKind, Tiling, check_build, scan_extent};
+use mrfmap::inference::{Budget, EngineConfig, EngineKind, MapOutput, Tiling, check_build, scan_extent};
 use mrfmap::map::TileKey;
 use mrfmap::pipeline::{
-    BUILD_ADVICE, BuildReport, Readings, Snapshots, build, build_online, dataset_extent, format_ranges, select_frames,
+    BUILD_ADVICE, Built, Readings, Snapshots, build_engine, build_online, dataset_extent, format_ranges, select_frames,
 };
 use mrfmap::source::FrameCache;
 
@@ -137,7 +137,7 @@ fn build_online_with(
     config: &EngineConfig,
     online: &OnlineArgs,
     snapshots: Option<Snapshots>,
-) -> Result<BuildReport> {
+) -> Result<Built> {
     let budget = Budget { ms: online.budget_ms, tiles: online.budget_tiles };
     let r = build_online(config, readings, count, budget, online.finish, &mut Bars::default(), snapshots)?;
     if let Some(path) = &online.timings {
@@ -196,7 +196,7 @@ pub fn run(a: Args) -> Result<()> {
     // Depth frames, from a dataset or a bag, go through one of the two loops.
     let mut frames_build = |readings: &mut Readings<'_, Frame>, count: Option<usize>| match online {
         Some(o) => build_online_with(readings, count, &config, o, snapshots.take()),
-        None => Ok(build(&config, readings, count, &mut Bars::default(), snapshots.take())?),
+        None => Ok(build_engine(&config, readings, count, &mut Bars::default(), snapshots.take())?),
     };
     let mut up = None;
     let (report, indices_used) = if let (true, Some(topic)) = (BagArgs::is_bag(&a.dataset), &a.bag.scan_topic) {
@@ -204,9 +204,9 @@ pub fn run(a: Args) -> Result<()> {
         scans.iter_mut().for_each(|s| a.laser.apply_misses(s));
         let indices = select_frames(scans.len(), &a.frames, &a.exclude)?;
         let chosen: Vec<RangeScan> = indices.iter().map(|&i| scans[i].clone()).collect();
-        check_build(&config, scan_extent(&chosen, &config), BUILD_ADVICE)?;
+        check_build(&config, scan_extent(&chosen, &config), MapOutput::Saved, BUILD_ADVICE)?;
         tracing::info!("{}: {} of {} scans, engine {kind}", a.dataset.display(), indices.len(), scans.len());
-        (build_map(&indices, &config, |i| Ok(scans[i].clone()))?, indices)
+        (build_engine_of(&indices, &config, |i| Ok(scans[i].clone()))?, indices)
     } else if BagArgs::is_bag(&a.dataset) {
         let pick = (a.frames.as_slice(), a.exclude.as_slice());
         a.bag.build_streamed(&a.dataset, a.options.noise.as_deref(), pick, &config, &mut frames_build)?
@@ -215,7 +215,7 @@ pub fn run(a: Args) -> Result<()> {
         let scans = a.laser.scans(&log, a.resolution, a.options.noise.as_deref())?;
         let indices = select_frames(scans.len(), &a.frames, &a.exclude)?;
         let chosen: Vec<RangeScan> = indices.iter().map(|&i| scans[i].clone()).collect();
-        check_build(&config, scan_extent(&chosen, &config), BUILD_ADVICE)?;
+        check_build(&config, scan_extent(&chosen, &config), MapOutput::Saved, BUILD_ADVICE)?;
         tracing::info!(
             "{}: {} of {} laser scans, engine {kind}, resolution {} m",
             a.dataset.display(),
@@ -223,11 +223,11 @@ pub fn run(a: Args) -> Result<()> {
             log.readings.len(),
             a.resolution
         );
-        (build_map(&indices, &config, |i| Ok(scans[i].clone()))?, indices)
+        (build_engine_of(&indices, &config, |i| Ok(scans[i].clone()))?, indices)
     } else {
         let dataset = a.options.open(&a.dataset)?;
         let indices = select_frames(dataset.len(), &a.frames, &a.exclude)?;
-        check_build(&config, dataset_extent(&dataset, &indices, &config)?, BUILD_ADVICE)?;
+        check_build(&config, dataset_extent(&dataset, &indices, &config)?, MapOutput::Saved, BUILD_ADVICE)?;
         tracing::info!(
             "{}: {} of {} frames, engine {kind}, resolution {} m",
             a.dataset.display(),
@@ -239,21 +239,22 @@ pub fn run(a: Args) -> Result<()> {
         let mut readings = indices.iter().map(|&i| dataset.frame(i).map(|f| (i, f)));
         (frames_build(&mut readings, Some(indices.len()))?, indices)
     };
-    let mut map = report.map;
     // What went in, so `eval` can tell held-out views from views the map was built from.
-    map.params.insert("source".into(), a.dataset.display().to_string());
-    map.params.insert("frames".into(), format_ranges(&indices_used));
+    let mut params = BTreeMap::new();
+    params.insert("source".into(), a.dataset.display().to_string());
+    params.insert("frames".into(), format_ranges(&indices_used));
     // The world's up axis, which `view` stands the map on.
     if let Some(up) = up {
-        map.params.insert("up".into(), up.to_string());
+        params.insert("up".into(), up.to_string());
     }
-    map.save(&a.output)?;
+    // Straight from the engine to the file: no finished map held beside the engine's state.
+    let saved = report.engine.save_map(&a.output, &params)?;
     println!(
         "{}: {} frames, {} voxels ({} occupied), {:.1} ms/frame",
         a.output.display(),
         report.frames,
-        map.voxels.len(),
-        map.occupied_count(),
+        saved.voxels,
+        saved.occupied,
         report.integrate_time.as_secs_f64() * 1e3 / report.frames as f64
     );
     Ok(())

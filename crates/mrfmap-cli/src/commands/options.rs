@@ -1,6 +1,6 @@
 //! Flag groups that several commands share (how a map is built, how a laser log is read,
 //! where a bag's images and poses are), what they turn into for the library, and the
-//! library's build loop with progress bars ([`build_map`]).
+//! library's build loop with progress bars ([`build_engine_of`], [`build_map`]).
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -11,7 +11,7 @@ use crate::progress::Bars;
 use mrfmap::frames::{Frame, NoiseModel, Poly, RangeScan};
 use mrfmap::inference::{Allocation, BuildOptions, EngineConfig, EngineKind, KeyframeSelection, Marking};
 use mrfmap::map::Aabb;
-use mrfmap::pipeline::{BuildReport, Reading, Readings, build};
+use mrfmap::pipeline::{BuildReport, Built, Reading, Readings, build_engine};
 #[cfg(feature = "bags")]
 use mrfmap::pipeline::{check_posed, stream_bag};
 #[cfg(feature = "bags")]
@@ -303,7 +303,7 @@ impl BagArgs {
         pick: (&[usize], &[usize]),
         config: &EngineConfig,
         build: &mut FrameBuild<'_>,
-    ) -> Result<(BuildReport, Vec<usize>)> {
+    ) -> Result<(Built, Vec<usize>)> {
         #[cfg(not(feature = "bags"))]
         return Err(without_bags(path, (noise, pick, config, build)));
         #[cfg(feature = "bags")]
@@ -336,7 +336,7 @@ impl BagArgs {
 }
 
 /// A build from frames as they come, each with its index, and how many will come if known.
-pub type FrameBuild<'a> = dyn FnMut(&mut Readings<'_, Frame>, Option<usize>) -> Result<BuildReport> + 'a;
+pub type FrameBuild<'a> = dyn FnMut(&mut Readings<'_, Frame>, Option<usize>) -> Result<Built> + 'a;
 
 /// The error for a bag given to a binary built without the `bags` feature (`_unused`: the
 /// arguments only a bag reader would read).
@@ -359,14 +359,23 @@ pub fn check_output_folder(path: &std::path::Path) -> Result<()> {
 }
 
 /// Integrates the readings `indices` (fetched through `reading`) with the engine `config`
-/// describes, with progress bars.
-pub fn build_map<R: Reading>(
+/// describes, with progress bars; the engine is kept ([`Built`]).
+pub fn build_engine_of<R: Reading>(
     indices: &[usize],
     config: &EngineConfig,
     mut reading: impl FnMut(usize) -> mrfmap::Result<R>,
-) -> Result<BuildReport> {
+) -> Result<Built> {
     let mut readings = indices.iter().map(|&i| reading(i).map(|r| (i, r)));
-    Ok(build(config, &mut readings, Some(indices.len()), &mut Bars::default(), None)?)
+    Ok(build_engine(config, &mut readings, Some(indices.len()), &mut Bars::default(), None)?)
+}
+
+/// [`build_engine_of`], with the engine's map made.
+pub fn build_map<R: Reading>(
+    indices: &[usize],
+    config: &EngineConfig,
+    reading: impl FnMut(usize) -> mrfmap::Result<R>,
+) -> Result<BuildReport> {
+    Ok(build_engine_of(indices, config, reading)?.into_report())
 }
 
 #[cfg(test)]

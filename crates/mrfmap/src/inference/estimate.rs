@@ -13,8 +13,9 @@
 //!
 //! Bytes per brick and per voxel were measured (BENCHMARKS.md, "Memory estimates"): a
 //! log-odds build peaks at 8 KiB per dense brick (the engine's f32 grid and the finished
-//! map's copy, 8 bytes per voxel; bricks hold only their z-layers that hold voxels, so a
-//! planar map's take an eighth); CRM holds 4 (particles + 1) + 5 bytes per voxel, a slot
+//! map's copy, 8 bytes per voxel), 3 KiB when the map is saved from the engine without that
+//! copy ([`MapOutput::Saved`]; bricks hold only their z-layers that hold voxels, so a planar
+//! map's take an eighth); CRM holds 4 (particles + 1) + 5 bytes per voxel, a slot
 //! table and the map's copy per brick (1 + 4 KiB dense) and, while a frame is applied, 4 KiB
 //! per brick it
 //! crosses; the MRF (band allocation) allocates
@@ -38,14 +39,28 @@ use crate::limits;
 use crate::map::{BRICK_EDGE, BrickKey, VoxelKey};
 use crate::rays::{FrameRays, PixelRay, ScanRays, Walk, pixel_direction, pose_parts};
 
+/// Where a build's map goes, which decides whether the finished map is ever held beside the
+/// engine's state.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum MapOutput {
+    /// Made in memory ([`super::Engine::map`], [`crate::pipeline::build`], Python's builds).
+    InMemory,
+    /// Written from the engine to a file ([`super::Engine::save_map`], `mrfmap build`): a
+    /// log-odds map is converted a brick at a time, never whole.
+    Saved,
+}
+
 /// Estimated peak memory in bytes of building `config`'s map from the readings of `extent`
-/// (see the module's documentation for what is counted).
-pub fn estimate_memory(config: &EngineConfig, extent: &Extent) -> f64 {
+/// into `output` (see the module's documentation for what is counted).
+pub fn estimate_memory(config: &EngineConfig, extent: &Extent, output: MapOutput) -> f64 {
     let scratch = SCRATCH_PER_PIXEL * extent.pixels;
     BASE_MEMORY
         + scratch
         + match config.kind {
-            EngineKind::LogOdds => LOGODDS_BRICK * extent.bricks + LOGODDS_LAYER * extent.layers,
+            EngineKind::LogOdds => match output {
+                MapOutput::InMemory => LOGODDS_BRICK * extent.bricks + LOGODDS_LAYER * extent.layers,
+                MapOutput::Saved => LOGODDS_SAVED_BRICK * extent.bricks + LOGODDS_SAVED_LAYER * extent.layers,
+            },
             EngineKind::Crm => {
                 let per_voxel = 4.0 * (config.crm.particles as f64 + 1.0) + CRM_VOXEL;
                 CRM_BRICK * extent.bricks
@@ -467,14 +482,14 @@ pub fn scan_extent(scans: &[RangeScan], config: &EngineConfig) -> Option<Extent>
     probe.finish(scans.len(), scans.iter().map(|s| s.beams.len()).max().unwrap_or(0) as f64)
 }
 
-/// Refuses a build of `readings` frames or scans spanning `extent` whose memory estimate is
-/// over [`limits::max_memory`] (the error names the estimate, the limit and `advice`), and
-/// warns when a voxel is larger than everything the sensors saw. No extent (nothing seen):
-/// nothing to refuse.
-pub fn check_build(config: &EngineConfig, extent: Option<Extent>, advice: &str) -> Result<()> {
+/// Refuses a build of `readings` frames or scans spanning `extent` into `output` whose memory
+/// estimate is over [`limits::max_memory`] (the error names the estimate, the limit and
+/// `advice`), and warns when a voxel is larger than everything the sensors saw. No extent
+/// (nothing seen): nothing to refuse.
+pub fn check_build(config: &EngineConfig, extent: Option<Extent>, output: MapOutput, advice: &str) -> Result<()> {
     let Some(extent) = extent else { return Ok(()) };
     let what = format!("a {} map at {} m", config.kind, config.resolution);
-    let estimate = estimate_memory(config, &extent);
+    let estimate = estimate_memory(config, &extent, output);
     tracing::debug!(
         "{what}: memory estimate {} ({:.0} bricks, {:.0} voxels, {:.0} bricks holding end points, {:.0} readings kept, {:.0} tile entries each)",
         limits::human(estimate),
@@ -522,6 +537,12 @@ const LOGODDS_BRICK: f64 = 512.0;
 /// allocator keeps most of what they held, so the resident size does not (0.9-1.0x on
 /// coffin-world and intel-lab).
 const LOGODDS_LAYER: f64 = 896.0;
+/// [`LOGODDS_BRICK`] of a log-odds map saved from its engine ([`MapOutput::Saved`]): the
+/// engine's grid alone.
+const LOGODDS_SAVED_BRICK: f64 = 256.0;
+/// [`LOGODDS_LAYER`] of a log-odds map saved from its engine: its 4 bytes per voxel and room
+/// for the layers' vectors to grow, no finished map's copy.
+const LOGODDS_SAVED_LAYER: f64 = 352.0;
 /// Bytes per brick of a CRM map besides its voxels and the map's layers: the slot table
 /// (1 KiB) and the finished map's brick.
 const CRM_BRICK: f64 = 1280.0;

@@ -13,12 +13,14 @@
 //! for any thread count. It is meant for the papers' experiments, not for speed.
 
 use crate::map::EngineKind;
+use std::collections::BTreeMap;
 use std::ops::ControlFlow;
+use std::path::Path;
 
 use rayon::prelude::*;
 use rustc_hash::FxHashMap;
 
-use super::{Engine, logit, sigmoid};
+use super::{Engine, SavedMap, logit, sigmoid};
 use crate::error::{Error, Result};
 use crate::frames::{Frame, RangeScan};
 use crate::map::{Aabb, BrickKey, BrickList, Grid, Map, MapVoxel, SlotMask, VoxelKey, box_keys, mask_set};
@@ -325,6 +327,13 @@ impl Engine for LogOddsEngine {
         let mut map = self.map_params();
         map.voxels = self.grid.into_map(|l| map_voxel(*l));
         map
+    }
+
+    fn save_map(self: Box<Self>, path: &Path, params: &BTreeMap<String, String>) -> Result<SavedMap> {
+        let mut meta = self.map_params();
+        meta.params.extend(params.clone());
+        let occupied = meta.save_converted(&self.grid, |l| map_voxel(*l), path)?;
+        Ok(SavedMap { voxels: self.grid.len(), occupied })
     }
 }
 

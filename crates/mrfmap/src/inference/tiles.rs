@@ -133,7 +133,7 @@ impl Tiling {
         let sampled =
             indices.iter().step_by(step).map(|&i| Ok(frame(i)?.borrow().clone())).collect::<Result<Vec<_>>>()?;
         let extent = super::frames_extent(indices.iter().map(|&i| pose(i)), &sampled, &config);
-        Ok(extent.map_or(0.0, |e| super::estimate_memory(&config, &e)))
+        Ok(extent.map_or(0.0, |e| super::estimate_memory(&config, &e, super::MapOutput::InMemory)))
     }
 
     /// The tiles whose build box (grown by a voxel, so that a ray along a face counts) some

@@ -16,7 +16,7 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
-use super::{BrickKey, Map, MapVoxel, mask_slots};
+use super::{BrickKey, Grid, Map, MapVoxel, mask_slots};
 use crate::error::{Error, Result};
 
 const MAGIC: &[u8; 8] = b"\x89MRFMAP\n";
@@ -34,27 +34,51 @@ struct Header {
 }
 
 pub(super) fn save(map: &Map, path: &Path) -> Result<()> {
-    // Written as encoded, a brick at a time: a map's bytes are never all in memory at once
-    // (for a large map they were an eighth of a build's peak).
-    crate::atomic_file::write_atomic(path, |w| encode_into(map, w))
+    save_converted(map, &map.voxels, |v| *v, path).map(|_| ())
+}
+
+/// Saves the map that `meta` (engine, parameters, has_variance; its voxels are not read)
+/// would be with `grid`'s voxels made map voxels by `convert`, each brick converted as it is
+/// written; returns how many voxels are occupied. The same file as the map saved whole, and
+/// neither the map's voxels nor its bytes are ever all in memory (an engine's grid saved this
+/// way needs no finished copy beside it: for a log-odds map, that copy was over half of a
+/// build's peak).
+pub(super) fn save_converted<V: Copy + Default>(
+    meta: &Map,
+    grid: &Grid<V>,
+    convert: impl Fn(&V) -> MapVoxel,
+    path: &Path,
+) -> Result<usize> {
+    let mut occupied = 0;
+    crate::atomic_file::write_atomic(path, |w| {
+        occupied = encode_into(meta, grid, &convert, w)?;
+        Ok(())
+    })?;
+    Ok(occupied)
 }
 
 #[cfg(test)]
 fn encode(map: &Map) -> Vec<u8> {
     let mut out = Vec::new();
-    encode_into(map, &mut out).expect("writing to memory");
+    encode_into(map, &map.voxels, |v| *v, &mut out).expect("writing to memory");
     out
 }
 
-/// Writes `map` in the file format to `out`, the checksum last.
-fn encode_into(map: &Map, out: &mut impl Write) -> std::io::Result<()> {
+/// Writes the map `meta` describes, with `grid`'s voxels through `convert`, in the file format
+/// to `out`, the checksum last; returns how many voxels are occupied.
+fn encode_into<V: Copy + Default>(
+    meta: &Map,
+    grid: &Grid<V>,
+    convert: impl Fn(&V) -> MapVoxel,
+    out: &mut impl Write,
+) -> std::io::Result<usize> {
     let header = Header {
-        engine: map.engine,
-        resolution: map.resolution(),
-        has_variance: map.has_variance,
-        bricks: map.voxels.brick_count() as u64,
-        voxels: map.voxels.len() as u64,
-        params: map.params.clone(),
+        engine: meta.engine,
+        resolution: grid.resolution(),
+        has_variance: meta.has_variance,
+        bricks: grid.brick_count() as u64,
+        voxels: grid.len() as u64,
+        params: meta.params.clone(),
     };
     let header = toml::to_string(&header).expect("header is plain data");
     let mut crc = Crc32::default();
@@ -65,8 +89,11 @@ fn encode_into(map: &Map, out: &mut impl Write) -> std::io::Result<()> {
     buf.extend_from_slice(header.as_bytes());
     crc.update(&buf);
     out.write_all(&buf)?;
-    for key in map.voxels.sorted_brick_keys() {
-        let brick = map.voxels.brick(key).expect("key from this grid");
+    let mut occupied = 0;
+    // Written as encoded, a brick at a time: a map's bytes are never all in memory at once
+    // (for a large map they were an eighth of a build's peak).
+    for key in grid.sorted_brick_keys() {
+        let brick = grid.brick(key).expect("key from this grid");
         buf.clear();
         for c in key.0 {
             buf.extend_from_slice(&c.to_le_bytes());
@@ -75,15 +102,18 @@ fn encode_into(map: &Map, out: &mut impl Write) -> std::io::Result<()> {
             buf.extend_from_slice(&w.to_le_bytes());
         }
         for (_, v) in brick.iter() {
+            let v = convert(v);
+            occupied += usize::from(v.is_occupied());
             buf.extend_from_slice(&v.occupancy.to_le_bytes());
-            if map.has_variance {
+            if meta.has_variance {
                 buf.extend_from_slice(&v.variance.to_le_bytes());
             }
         }
         crc.update(&buf);
         out.write_all(&buf)?;
     }
-    out.write_all(&crc.finish().to_le_bytes())
+    out.write_all(&crc.finish().to_le_bytes())?;
+    Ok(occupied)
 }
 
 pub(super) fn load(path: &Path) -> Result<Map> {

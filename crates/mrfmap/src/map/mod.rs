@@ -44,6 +44,12 @@ impl MapVoxel {
         let var = if has_variance { self.variance as f64 } else { m * (1.0 - m) };
         (m, var.max(0.0).sqrt())
     }
+
+    /// True when the occupancy is above [`OCCUPIED_THRESHOLD`].
+    #[inline]
+    pub fn is_occupied(&self) -> bool {
+        self.occupancy > OCCUPIED_THRESHOLD
+    }
 }
 
 /// Probability above which a voxel counts as occupied (OctoMap's default).
@@ -90,7 +96,7 @@ impl Map {
 
     /// Number of voxels with occupancy above [`OCCUPIED_THRESHOLD`].
     pub fn occupied_count(&self) -> usize {
-        self.voxels.iter().filter(|(_, v)| v.occupancy > OCCUPIED_THRESHOLD).count()
+        self.voxels.iter().filter(|(_, v)| v.is_occupied()).count()
     }
 
     /// World-space bounds `(min corner, max corner)` of the allocated voxels.
@@ -102,6 +108,31 @@ impl Map {
     /// Saves in the binary map format (atomically: temp file + rename).
     pub fn save(&self, path: &Path) -> crate::Result<()> {
         file::save(self, path)
+    }
+
+    /// Saves, as [`Map::save`] would, this map's engine, parameters and `has_variance` with
+    /// `grid`'s voxels made map voxels by `convert` (this map's own voxels are not read), each
+    /// brick converted as it is written: an engine's state saved without its finished map
+    /// ever in memory. Returns how many voxels are occupied.
+    ///
+    /// ```
+    /// use mrfmap::map::{EngineKind, Grid, Map, MapVoxel, VoxelKey};
+    /// let mut grid: Grid<f32> = Grid::new(0.05).unwrap();
+    /// *grid.get_or_insert(VoxelKey([1, 2, 3]), 0.0) = 0.9;
+    /// let path = std::env::temp_dir().join("mrfmap-doc-save-converted.mrfmap");
+    /// let meta = Map::new(EngineKind::LogOdds, 0.05).unwrap();
+    /// let occupied = meta.save_converted(&grid, |&p| MapVoxel { occupancy: p, variance: 0.0 }, &path).unwrap();
+    /// assert_eq!(occupied, 1);
+    /// assert_eq!(Map::load(&path).unwrap().occupancy_at([0.06, 0.11, 0.16]), Some(0.9));
+    /// # std::fs::remove_file(&path).unwrap();
+    /// ```
+    pub fn save_converted<V: Copy + Default>(
+        &self,
+        grid: &Grid<V>,
+        convert: impl Fn(&V) -> MapVoxel,
+        path: &Path,
+    ) -> crate::Result<usize> {
+        file::save_converted(self, grid, convert, path)
     }
 
     /// Loads a map saved by [`Map::save`]; corrupt, truncated or foreign files give a clear error.

@@ -4,7 +4,7 @@
 
 use crate::error::{Error, Result};
 use crate::frames::{Frame, Pose};
-use crate::inference::{EngineConfig, Extent, check_build, frames_extent};
+use crate::inference::{EngineConfig, Extent, MapOutput, check_build, frames_extent};
 use crate::source::Dataset;
 
 /// Frames decoded for a memory estimate, at most.
@@ -68,6 +68,8 @@ impl<'a> Growth<'a> {
         if !(n + 1).is_power_of_two() {
             return Ok(());
         }
-        check_build(self.config, frames_extent(self.poses.iter().copied(), &self.sample, self.config), BUILD_ADVICE)
+        let extent = frames_extent(self.poses.iter().copied(), &self.sample, self.config);
+        // (Whether the stream's map is kept or saved is its caller's: the larger is checked.)
+        check_build(self.config, extent, MapOutput::InMemory, BUILD_ADVICE)
     }
 }

@@ -6,6 +6,7 @@
 //! - [`Reading`] is what an engine integrates: a depth [`Frame`] or a [`RangeScan`];
 //! - [`integrate`] feeds readings to an engine, reporting [`Progress`] and writing
 //!   [`Snapshots`]; [`build`] makes the engine, feeds it and runs its deferred inference;
+//!   [`build_engine`] keeps the engine ([`Built`]), to save its map straight to a file;
 //!   [`build_online`] feeds an MRF frame by frame on its anytime schedule, as a robot would;
 //! - which frames, and how a map records them: [`select_frames`], [`format_ranges`];
 //! - memory, before and during a build: [`dataset_extent`], [`Growth`];
@@ -107,6 +108,24 @@ pub struct BuildReport {
     pub integrate_time: Duration,
 }
 
+/// What a build did, its engine kept: its map is made by [`Built::into_report`], or written
+/// without being held in memory by [`Engine::save_map`] (what `mrfmap build` does).
+pub struct Built {
+    /// The engine, every reading in and its inference run.
+    pub engine: Box<dyn Engine>,
+    /// Readings fed to the engine.
+    pub frames: usize,
+    /// Time spent in the engine: integration and inference (not reading or decoding).
+    pub integrate_time: Duration,
+}
+
+impl Built {
+    /// The build's report with the engine's map ([`Engine::into_map`]).
+    pub fn into_report(self) -> BuildReport {
+        BuildReport { map: self.engine.into_map(), frames: self.frames, integrate_time: self.integrate_time }
+    }
+}
+
 /// An error while integrating reading `index`, saying so (errors naming a file already say
 /// where they come from).
 fn at_reading(index: usize, e: Error) -> Error {
@@ -150,8 +169,19 @@ pub fn build<R: Reading>(
     readings: &mut Readings<'_, R>,
     count: Option<usize>,
     progress: &mut dyn Progress,
-    mut snapshots: Option<Snapshots>,
+    snapshots: Option<Snapshots>,
 ) -> Result<BuildReport> {
+    Ok(build_engine(config, readings, count, progress, snapshots)?.into_report())
+}
+
+/// [`build`], the engine kept instead of its map made.
+pub fn build_engine<R: Reading>(
+    config: &EngineConfig,
+    readings: &mut Readings<'_, R>,
+    count: Option<usize>,
+    progress: &mut dyn Progress,
+    mut snapshots: Option<Snapshots>,
+) -> Result<Built> {
     let mut engine = new_engine(config)?;
     let (frames, mut integrate_time) = integrate(engine.as_mut(), readings, count, progress, snapshots.as_mut())?;
     if let Some(s) = snapshots {
@@ -163,13 +193,13 @@ pub fn build<R: Reading>(
     engine.finish_with_progress(&mut |done, total| progress.advance(done, Some(total)))?;
     progress.end();
     integrate_time += t.elapsed();
-    Ok(BuildReport { map: engine.into_map(), frames, integrate_time })
+    Ok(Built { engine, frames, integrate_time })
 }
 
 /// What [`build_online`] did: the build, and each keyframe's step (time, tiles, backlog).
 pub struct OnlineReport {
-    /// The map as it stood after the last frame (or after `finish`).
-    pub build: BuildReport,
+    /// The engine as it stood after the last frame (or after `finish`).
+    pub build: Built,
     /// One report per keyframe, in order.
     pub keyframes: Vec<StepReport>,
 }
@@ -226,5 +256,5 @@ pub fn build_online(
     } else if !settled {
         tracing::info!("MRF online: {last_backlog} tiles still in the backlog (finishing would infer them first)");
     }
-    Ok(OnlineReport { build: BuildReport { map: engine.map(), frames, integrate_time }, keyframes: steps })
+    Ok(OnlineReport { build: Built { engine: Box::new(engine), frames, integrate_time }, keyframes: steps })
 }

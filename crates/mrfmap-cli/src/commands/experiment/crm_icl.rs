@@ -16,7 +16,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, Result};
-use mrfmap::inference::{EngineConfig, EngineKind, check_build, new_engine};
+use mrfmap::inference::{EngineConfig, EngineKind, MapOutput, check_build, new_engine};
 use mrfmap::outputs::pictures::write_text;
 use mrfmap::outputs::{Series, line_plot, surface_truth};
 use mrfmap::source::Dataset;
@@ -89,7 +89,7 @@ pub fn crm_icl(a: Args) -> Result<()> {
     // not fit.
     let all: Vec<usize> = (0..clean.len()).collect();
     for config in [&logodds_config, &crm_config] {
-        check_build(config, dataset_extent(&clean, &all, config)?, BUILD_ADVICE)?;
+        check_build(config, dataset_extent(&clean, &all, config)?, MapOutput::InMemory, BUILD_ADVICE)?;
     }
     std::fs::create_dir_all(&a.output).with_context(|| format!("creating {}", a.output.display()))?;
     // Noise-free frames need only the noise's forward model: no noisy copy is written.

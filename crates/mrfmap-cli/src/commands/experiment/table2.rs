@@ -16,7 +16,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use mrfmap::frames::{NoiseModel, keyframes_by_motion};
-use mrfmap::inference::{EngineConfig, EngineKind, check_build};
+use mrfmap::inference::{EngineConfig, EngineKind, MapOutput, check_build};
 use mrfmap::map::Map;
 use mrfmap::outputs::pictures::{write_accuracy_image, write_text};
 use mrfmap::outputs::{AccuracyParams, PeakRule, Scorer, Up, View, ViewScore, render_map};
@@ -120,7 +120,7 @@ pub fn mrfmap_table2(a: Args) -> Result<()> {
         for &kind in &a.engines {
             let mut config = EngineConfig::new(kind, resolution);
             config.crm.particles = a.particles as usize;
-            check_build(&config, dataset_extent(&data, &keyframes, &config)?, BUILD_ADVICE)?;
+            check_build(&config, dataset_extent(&data, &keyframes, &config)?, MapOutput::InMemory, BUILD_ADVICE)?;
             let t = Instant::now();
             let map = build_map(&keyframes, &config, |i| data.frame(i))?.map;
             let build_s = t.elapsed().as_secs_f64();

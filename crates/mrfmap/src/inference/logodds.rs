@@ -329,7 +329,7 @@ impl Engine for LogOddsEngine {
         map
     }
 
-    fn save_map(self: Box<Self>, path: &Path, params: &BTreeMap<String, String>) -> Result<SavedMap> {
+    fn save_map(&self, path: &Path, params: &BTreeMap<String, String>) -> Result<SavedMap> {
         let mut meta = self.map_params();
         meta.params.extend(params.clone());
         let occupied = meta.save_converted(&self.grid, |l| map_voxel(*l), path)?;

@@ -98,12 +98,12 @@ pub trait Engine: Send + Sync {
     fn into_map(self: Box<Self>) -> Map {
         self.map()
     }
-    /// Saves [`Engine::into_map`]'s map to `path` (temp file + rename) with `params` added to
-    /// the engine's own, giving up the engine. Log-odds writes its grid a brick at a time
-    /// ([`Map::save_converted`]), never holding the finished map beside its own state: that
-    /// copy, 8 bytes a voxel against the engine's 4, was over half of a large build's peak.
-    fn save_map(self: Box<Self>, path: &Path, params: &BTreeMap<String, String>) -> Result<SavedMap> {
-        let mut map = self.into_map();
+    /// Saves [`Engine::map`] to `path` (temp file + rename) with `params` added to the
+    /// engine's own. Log-odds writes its grid a brick at a time ([`Map::save_converted`]),
+    /// never holding the finished map beside its own state: that copy, 8 bytes a voxel against
+    /// the engine's 4, was over half of a large build's peak.
+    fn save_map(&self, path: &Path, params: &BTreeMap<String, String>) -> Result<SavedMap> {
+        let mut map = self.map();
         map.params.extend(params.clone());
         map.save(path)?;
         Ok(SavedMap { voxels: map.voxels.len(), occupied: map.occupied_count() })

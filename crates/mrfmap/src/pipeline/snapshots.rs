@@ -2,6 +2,7 @@
 //! folder (each atomically, so a robot stack or viewer can pick them up) and, with the `mcap`
 //! feature, a Foxglove timeline of them ([`crate::outputs::SceneTimeline`]).
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use crate::error::{Error, Result};
@@ -64,12 +65,15 @@ impl Snapshots {
     }
 
     fn write(&mut self, time: f64, engine: &dyn Engine) -> Result<()> {
-        let mut map = engine.map();
-        map.params.insert("snapshot_time".into(), format!("{time:.6}"));
+        let params = BTreeMap::from([("snapshot_time".to_string(), format!("{time:.6}"))]);
         let path = self.dir.join(format!("{:05}_{time:.3}.mrfmap", self.written));
-        map.save(&path)?;
+        // Saved from the engine: a log-odds build holds no finished map beside its grid.
+        // (The timeline's diff of bricks needs the map, so it makes one.)
+        engine.save_map(&path, &params)?;
         #[cfg(feature = "mcap")]
         if let Some((file, timeline)) = &mut self.timeline {
+            let mut map = engine.map();
+            map.params.extend(params);
             if timeline.is_none() {
                 *timeline = Some(crate::outputs::SceneTimeline::create(file, &map, Default::default())?);
             }

@@ -444,6 +444,13 @@ impl Mapper {
         PyMap { map: py.detach(|| self.lock().engine().map()) }
     }
 
+    /// Saves the current map straight from the live engine (a log-odds map a brick at a
+    /// time, never copied whole); returns the number of occupied voxels.
+    fn save(&self, py: Python<'_>, path: PathBuf) -> PyResult<usize> {
+        let saved = py.detach(|| self.lock().engine().save_map(&path, &Default::default())).map_err(py_err)?;
+        Ok(saved.occupied)
+    }
+
     /// Occupancy and variance at points, read from the live engine.
     fn query<'py>(&self, py: Python<'py>, points: &Bound<'py, PyAny>) -> Queried<'py> {
         occupancy_variance(py, &LiveEngine(self.lock().engine()), points)

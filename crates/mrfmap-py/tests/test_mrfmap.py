@@ -111,6 +111,19 @@ def test_files_round_trip(tmp_path):
     assert (tmp_path / "w.bt").read_bytes().startswith(b"# Octomap OcTree binary file")
 
 
+def test_mapper_saves_the_file_its_map_would(tmp_path):
+    for engine in ("logodds", "crm"):
+        m = mrfmap.Mapper(0.05, engine=engine, particles=15, **CAM)
+        m.add_frame(wall(), np.eye(4))
+        whole, live = tmp_path / f"{engine}-whole.mrfmap", tmp_path / f"{engine}-live.mrfmap"
+        mp = m.map()
+        mp.save(whole)
+        assert m.save(live) == mp.occupied_count > 0
+        assert live.read_bytes() == whole.read_bytes(), engine
+        with pytest.raises(OSError):
+            m.save(tmp_path / "no-such-folder" / "m.mrfmap")
+
+
 def test_bad_input_raises_value_error(tmp_path):
     m = mrfmap.Mapper(0.05, **CAM)
     cases = [

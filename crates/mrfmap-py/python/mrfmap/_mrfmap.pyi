@@ -118,6 +118,11 @@ class Mapper:
         (0 for the other engines)."""
     def map(self) -> Map:
         """The current map (a snapshot)."""
+    def save(self, path: os.PathLike[str] | str) -> int:
+        """Saves the current map to ``path`` in mrfmap's map format, straight from the live
+        engine: the same file as ``map().save(path)``, but a log-odds map is written a brick at
+        a time and never copied whole into memory. Returns the number of occupied voxels.
+        ``OSError`` if the file cannot be written."""
     def query(
         self, points: npt.NDArray[np.float64]
     ) -> Tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:

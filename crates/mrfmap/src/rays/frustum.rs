@@ -196,6 +196,23 @@ fn reciprocals(d: [f64; 3], s: f64) -> [f32; 3] {
     }
 }
 
+/// Whether each of `segs` passes through the box `lo`..`hi` (relative to the camera): the slab
+/// test in camera depth, lane by lane with no branch, so that a row of pixels runs in SIMD
+/// lanes. A pixel without a segment (start after end) never passes.
+#[inline(always)]
+fn slabs_cross<const N: usize>(segs: &[PixelSegment; N], lo: &[f32; 3], hi: &[f32; 3]) -> [bool; N] {
+    let mut t0: [f32; N] = std::array::from_fn(|j| segs[j].depths.0[0]);
+    let mut t1: [f32; N] = std::array::from_fn(|j| segs[j].depths.0[1]);
+    for a in 0..3 {
+        for j in 0..N {
+            let (ta, tb) = (lo[a] * segs[j].inv_dir[a], hi[a] * segs[j].inv_dir[a]);
+            t0[j] = t0[j].max(ta.min(tb));
+            t1[j] = t1[j].min(ta.max(tb));
+        }
+    }
+    std::array::from_fn(|j| t0[j] < t1[j])
+}
+
 /// The smaller of two numbers that are never NaN here: one instruction, where `f32::min`
 /// spends several on NaN handling (the pyramid and the box tests are made of these).
 #[inline]
@@ -810,17 +827,7 @@ impl<'a> View<'a> {
         let r = self.resolution;
         let lo: [f32; 3] = std::array::from_fn(|a| (key[a] as f64 * r - self.origin[a]) as f32);
         let hi: [f32; 3] = std::array::from_fn(|a| ((key[a] + 1) as f64 * r - self.origin[a]) as f32);
-        let crosses = |u: usize, v: usize| {
-            let PixelSegment { inv_dir: inv, depths: PixelDepths([start, end]) } =
-                self.seg.pixels[v * self.seg.width + u];
-            let (mut t0, mut t1) = (start, end); // start > end: no segment, never crosses
-            for a in 0..3 {
-                let (ta, tb) = (lo[a] * inv[a], hi[a] * inv[a]);
-                t0 = t0.max(ta.min(tb));
-                t1 = t1.min(ta.max(tb));
-            }
-            t0 < t1
-        };
+        let crosses = |u: usize, v: usize| slabs_cross(&[self.seg.pixels[v * self.seg.width + u]], &lo, &hi)[0];
         // Most undecided voxels hold a surface, and the ray through the middle of their image
         // ends inside them: try it first.
         let rect = &footprint.rect;
@@ -853,9 +860,18 @@ impl<'a> View<'a> {
                 }
                 let (v0, v1) = ((bv << k).max(rect.v0), ((bv + 1) << k).min(rect.v1 + 1));
                 let (u0, u1) = ((bu << k).max(rect.u0), ((bu + 1) << k).min(rect.u1 + 1));
-                // Each pixel's depths first: two compares where the slab test is a dozen
-                // operations, and most pixels here end in front of the voxel.
-                (v0..v1).any(|v| (u0..u1).any(|u| !pixels[v * width + u].depths.miss(z_near, z_far) && crosses(u, v)))
+                // A block's row of pixels at once, in lanes: each pixel's depths first (two
+                // compares where the slab test is a dozen operations, and most pixels here end
+                // in front of the voxel), then the slab tests of those left, side by side.
+                (v0..v1).any(|v| {
+                    let row = &pixels[v * width..];
+                    let lanes: [PixelSegment; 1 << K] = std::array::from_fn(|j| match row.get(u0 + j) {
+                        Some(p) if u0 + j < u1 && !p.depths.miss(z_near, z_far) => *p,
+                        _ => PixelSegment::NONE,
+                    });
+                    lanes.iter().any(|p| p.depths.0[0] <= p.depths.0[1])
+                        && slabs_cross(&lanes, &lo, &hi).contains(&true)
+                })
             })
         })
     }
@@ -869,6 +885,50 @@ mod tests {
     use crate::frames::{Camera, DepthImage, look_at};
     use crate::map::mask_slots;
     use crate::random::Rng;
+
+    /// The slab test in four lanes gives each lane's own answer (no lane leaks into another),
+    /// which is the brute-force answer: the segment's depths overlap the box's along all three
+    /// axes. (The projection's tests against walked rays check it in place.)
+    #[test]
+    fn slab_tests_in_lanes_are_each_pixels_own() {
+        let mut rng = Rng::new(7);
+        let (lo, hi) = ([0.1f32, -0.2, 1.0], [0.3f32, 0.0, 1.2]);
+        let (mut crossing, mut missing) = (0, 0);
+        for _ in 0..2000 {
+            let segs: [PixelSegment; 4] = std::array::from_fn(|_| {
+                if rng.uniform() < 0.2 {
+                    return PixelSegment::NONE;
+                }
+                // A ray through (x, y, 1) per metre of depth: inverse direction (1/x, 1/y, 1).
+                let (x, y) = (rng.range(-0.1, 0.4) as f32, rng.range(-0.3, 0.1) as f32);
+                let (a, b) = (rng.range(0.0, 1.5) as f32, rng.range(0.0, 1.5) as f32);
+                PixelSegment { inv_dir: [1.0 / x, 1.0 / y, 1.0], depths: PixelDepths([a.min(b), a.max(b)]) }
+            });
+            let lanes = slabs_cross(&segs, &lo, &hi);
+            for (seg, crossed) in segs.iter().zip(lanes) {
+                assert_eq!(crossed, slabs_cross(&[*seg], &lo, &hi)[0]);
+                let [start, end] = seg.depths.0;
+                // Brute force: depths where the point (x z, y z, z) lies in the box, sampled finely.
+                // (Inside by `margin`; samples 0.5 mm of depth apart.)
+                let brute = |margin: f32| {
+                    (0..=3000).map(|i| start + (end - start) * i as f32 / 3000.0).any(|z| {
+                        (0..3).all(|a| {
+                            let p = if a == 2 { z } else { z / seg.inv_dir[a] };
+                            p > lo[a] + margin && p < hi[a] - margin
+                        })
+                    })
+                };
+                if brute(1e-4) {
+                    assert!(crossed, "{seg:?}");
+                }
+                if crossed {
+                    assert!(brute(-1e-3), "{seg:?}");
+                }
+                if crossed { crossing += 1 } else { missing += 1 }
+            }
+        }
+        assert!(crossing > 100 && missing > 100, "{crossing} {missing}");
+    }
 
     /// A random small camera somewhere in a box, looking at random surfaces, with holes.
     fn random_frame(rng: &mut Rng) -> Frame {

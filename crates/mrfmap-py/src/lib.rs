@@ -299,7 +299,7 @@ impl Mapper {
         let result = py.detach(|| {
             let mut inner = self.lock();
             let m = self.camera;
-            stream_bag(&path, options, None, (&[], &[]), &self.config, |frames| {
+            stream_bag(&path, options, None, (&[], &[]), (&self.config, MapOutput::InMemory), |frames| {
                 let mut frames = frames.map(|f| {
                     let (i, mut frame) = f?;
                     let c = frame.camera;

@@ -9,6 +9,8 @@ use anyhow::{Context, Result, bail};
 
 use crate::progress::Bars;
 use mrfmap::frames::{Frame, NoiseModel, Poly, RangeScan};
+#[cfg(feature = "bags")]
+use mrfmap::inference::MapOutput;
 use mrfmap::inference::{Allocation, BuildOptions, EngineConfig, EngineKind, KeyframeSelection, Marking};
 use mrfmap::map::Aabb;
 use mrfmap::pipeline::{BuildReport, Built, Reading, Readings, build_engine};
@@ -295,7 +297,8 @@ impl BagArgs {
     }
 
     /// Builds with `build` from the bag's posed depth images, streamed
-    /// ([`mrfmap::pipeline::stream_bag`]); returns the build and the frames used.
+    /// ([`mrfmap::pipeline::stream_bag`]), its memory checked for a map saved from the engine
+    /// (as `mrfmap build` writes it); returns the build and the frames used.
     pub fn build_streamed(
         &self,
         path: &std::path::Path,
@@ -309,7 +312,7 @@ impl BagArgs {
         #[cfg(feature = "bags")]
         {
             let (options, noise) = self.depth_options(noise)?;
-            let (report, used) = stream_bag(path, options, noise, pick, config, |frames| {
+            let (report, used) = stream_bag(path, options, noise, pick, (config, MapOutput::Saved), |frames| {
                 build(frames, None).map_err(|e| mrfmap::Error::Invalid(format!("{e:#}")))
             })?;
             Ok((report, used))

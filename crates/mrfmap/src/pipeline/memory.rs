@@ -27,6 +27,7 @@ pub fn dataset_extent(dataset: &Dataset, indices: &[usize], config: &EngineConfi
 /// size at every frame (between two estimates the map may double).
 pub struct Growth<'a> {
     config: &'a EngineConfig,
+    output: MapOutput,
     poses: Vec<Pose>,
     /// Every `stride`-th frame, at most [`SAMPLE_FRAMES`] of them (the stride doubles).
     sample: Vec<Frame>,
@@ -34,9 +35,9 @@ pub struct Growth<'a> {
 }
 
 impl<'a> Growth<'a> {
-    /// A check for a build with `config`, before its first frame.
-    pub fn new(config: &'a EngineConfig) -> Self {
-        Growth { config, poses: Vec::new(), sample: Vec::new(), stride: 1 }
+    /// A check for a build with `config` into `output`, before its first frame.
+    pub fn new(config: &'a EngineConfig, output: MapOutput) -> Self {
+        Growth { config, output, poses: Vec::new(), sample: Vec::new(), stride: 1 }
     }
 
     /// Counts `frame` in, and fails if the build has outgrown the memory limit or will.
@@ -69,7 +70,6 @@ impl<'a> Growth<'a> {
             return Ok(());
         }
         let extent = frames_extent(self.poses.iter().copied(), &self.sample, self.config);
-        // (Whether the stream's map is kept or saved is its caller's: the larger is checked.)
-        check_build(self.config, extent, MapOutput::InMemory, BUILD_ADVICE)
+        check_build(self.config, extent, self.output, BUILD_ADVICE)
     }
 }

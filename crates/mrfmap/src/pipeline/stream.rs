@@ -10,18 +10,18 @@ use super::memory::Growth;
 use super::selection::select_frames;
 use crate::error::{Error, Result};
 use crate::frames::{Frame, NoiseModel};
-use crate::inference::EngineConfig;
+use crate::inference::{EngineConfig, MapOutput};
 use crate::source::bag::{Bag, BagOptions, DepthStream};
 
 /// Runs `build` on the posed depth images of the bag at `path` (those `frames` names, all
-/// when empty, minus `exclude`), streamed; returns what `build` made and the frame indices it
-/// was given. Skipped images are summarised in a warning; none posed is an error.
+/// when empty, minus `exclude`), streamed, its memory checked for `config` building into
+/// `output`; returns what `build` made and the frame indices it was given. Skipped images are summarised in a warning; none posed is an error.
 pub fn stream_bag<T>(
     path: &Path,
     options: BagOptions,
     noise: Option<NoiseModel>,
     (frames, exclude): (&[usize], &[usize]),
-    config: &EngineConfig,
+    (config, output): (&EngineConfig, MapOutput),
     build: impl FnOnce(&mut Readings<'_, Frame>) -> Result<T>,
 ) -> Result<(T, Vec<usize>)> {
     let topic = options.depth_topic.clone();
@@ -32,7 +32,7 @@ pub fn stream_bag<T>(
         config.kind,
         config.resolution
     );
-    let (mut growth, mut used) = (Growth::new(config), Vec::new());
+    let (mut growth, mut used) = (Growth::new(config, output), Vec::new());
     let built = {
         let mut chosen = stream.by_ref().filter_map(|frame| {
             let frame = match frame {

@@ -1,8 +1,10 @@
 //! Inference engines: turn frames into voxel occupancy beliefs.
 //!
 //! Every engine implements [`Engine`]: frames go in through [`Engine::integrate`], a
-//! finished [`Map`] comes out of [`Engine::map`]. Engines read rays through
-//! [`crate::rays`] and keep their state in a [`crate::map::Grid`]. Available:
+//! finished [`Map`] comes out of [`Engine::map`], or goes straight to a file through
+//! [`Engine::save_map`] (log-odds converts its grid a brick at a time, never holding the
+//! map). Engines read rays through [`crate::rays`] and keep their state in a
+//! [`crate::map::Grid`]. Available:
 //!
 //! - [`LogOddsEngine`]: OctoMap's occupancy grid update (docs/ALGORITHMS.md 5.1), the baseline
 //!   and the fast everyday mode; also the CRM paper's ramp inverse sensor model

@@ -67,21 +67,29 @@ impl Snapshots {
     fn write(&mut self, time: f64, engine: &dyn Engine) -> Result<()> {
         let params = BTreeMap::from([("snapshot_time".to_string(), format!("{time:.6}"))]);
         let path = self.dir.join(format!("{:05}_{time:.3}.mrfmap", self.written));
-        // Saved from the engine: a log-odds build holds no finished map beside its grid.
-        // (The timeline's diff of bricks needs the map, so it makes one.)
-        engine.save_map(&path, &params)?;
+        self.save(time, engine, &path, params)?;
+        self.written += 1;
+        self.last = Some((time, true));
+        Ok(())
+    }
+
+    /// Saves the snapshot at `path`. The timeline's diff of bricks needs the map: made once,
+    /// saved and added. Without a timeline the snapshot is saved from the engine (a log-odds
+    /// build then holds no finished map beside its grid).
+    fn save(&mut self, time: f64, engine: &dyn Engine, path: &Path, params: BTreeMap<String, String>) -> Result<()> {
         #[cfg(feature = "mcap")]
         if let Some((file, timeline)) = &mut self.timeline {
             let mut map = engine.map();
             map.params.extend(params);
+            map.save(path)?;
             if timeline.is_none() {
                 *timeline = Some(crate::outputs::SceneTimeline::create(file, &map, Default::default())?);
             }
-            timeline.as_mut().expect("just made").add(&map, time)?;
+            return timeline.as_mut().expect("just made").add(&map, time).map(|_| ());
         }
-        self.written += 1;
-        self.last = Some((time, true));
-        Ok(())
+        #[cfg(not(feature = "mcap"))]
+        let _ = time; // (only the timeline stamps a snapshot with its time)
+        engine.save_map(path, &params).map(|_| ())
     }
 
     /// After the last reading: its map too (if no snapshot holds it yet), and the timeline

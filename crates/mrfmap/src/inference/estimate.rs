@@ -28,6 +28,7 @@
 //! build takes): enough to refuse a build that cannot fit, not to size a machine to the
 //! megabyte.
 
+use std::borrow::Cow;
 use std::ops::ControlFlow;
 
 use rustc_hash::{FxHashMap, FxHashSet};
@@ -369,23 +370,45 @@ pub fn frames_extent(
     sampled: &[Frame],
     config: &EngineConfig,
 ) -> Option<Extent> {
+    let Ok(extent) = frames_extent_loaded::<std::convert::Infallible>(
+        poses,
+        sampled.len(),
+        |k| Ok(Cow::Borrowed(&sampled[k])),
+        config,
+    );
+    extent
+}
+
+/// [`frames_extent`] with `count` sampled frames that `load(k)` gives (`k` in `0..count`, in
+/// the sequence's order) when they are needed, so that no more than one is held at a time:
+/// for frames read from files, decoded again rather than kept (eight 640 x 480 frames were
+/// the largest part of a small build's peak memory).
+pub fn frames_extent_loaded<'f, E>(
+    poses: impl IntoIterator<Item = Pose>,
+    count: usize,
+    mut load: impl FnMut(usize) -> std::result::Result<Cow<'f, Frame>, E>,
+    config: &EngineConfig,
+) -> std::result::Result<Option<Extent>, E> {
     let mut poses: Vec<Pose> = poses.into_iter().collect();
     // The MRF keeps its keyframes only.
     if config.kind == EngineKind::Mrf {
         poses = config.mrf.keyframes.keep(&poses).into_iter().map(|i| poses[i]).collect();
     }
-    if poses.is_empty() {
-        return None;
+    if poses.is_empty() || count == 0 {
+        return Ok(None);
     }
-    let first = sampled.first()?;
-    let (pixels, f) = (
-        first.depth.width() as f64 * first.depth.height() as f64,
-        0.5 * (first.camera.fx.abs() + first.camera.fy.abs()),
-    );
     // The mean ray length, from every 8th pixel of the samples.
     let (mut length, mut n) = (0.0, 0.0f64);
-    for frame in sampled {
-        let rays = FrameRays::new(frame);
+    let (mut pixels, mut f) = (0.0, 0.0);
+    for k in 0..count {
+        let frame = load(k)?;
+        if k == 0 {
+            (pixels, f) = (
+                frame.depth.width() as f64 * frame.depth.height() as f64,
+                0.5 * (frame.camera.fx.abs() + frame.camera.fy.abs()),
+            );
+        }
+        let rays = FrameRays::new(&frame);
         for v in (0..frame.depth.height()).step_by(8) {
             for ray in rays.row(v).step_by(8) {
                 if let Some(seg) = config.limits.segment(&ray, 0.0) {
@@ -404,10 +427,16 @@ pub fn frames_extent(
     let step = stride.sqrt().ceil().max(1.0) as u32;
     let (sampled_angle, native) = (step as f64 / f, 1.0 / f);
     let readings = poses.len() as f64 / probes as f64;
-    let walk = |probe: &mut Probe| {
+    let mut walk = |probe: &mut Probe| {
+        // Probes go through the sequence in order, so each sample is loaded once per walk.
+        let mut current: Option<(usize, Cow<'f, Frame>)> = None;
         for j in 0..probes {
             let i = j * poses.len() / probes;
-            let frame = &sampled[(i * sampled.len() / poses.len()).min(sampled.len() - 1)];
+            let k = (i * count / poses.len()).min(count - 1);
+            let frame = match current {
+                Some((at, ref frame)) if at == k => frame,
+                _ => &current.insert((k, load(k)?)).1,
+            };
             let (rotation, origin) = pose_parts(&poses[i]);
             let noise = frame.noise.as_deref().unwrap_or(&default_noise);
             for v in (0..frame.depth.height()).step_by(step as usize) {
@@ -421,8 +450,9 @@ pub fn frames_extent(
             }
             probe.next_reading();
         }
+        Ok(())
     };
-    walk(&mut probe);
+    walk(&mut probe)?;
     // The MRF's tiles hold the voxels their rays cross in the allocated bricks, which are
     // known only now: the band around end points, or every brick crossed.
     if config.kind == EngineKind::Mrf {
@@ -430,10 +460,10 @@ pub fn frames_extent(
             super::Allocation::Band => probe.surface.clone(),
             super::Allocation::Full => probe.bricks.keys().copied().collect(),
         });
-        walk(&mut probe);
+        walk(&mut probe)?;
         probe.band = None;
     }
-    probe.finish(poses.len(), pixels)
+    Ok(probe.finish(poses.len(), pixels))
 }
 
 /// Where laser scans look and what their beams will allocate (misses up to the sensor's
@@ -523,8 +553,8 @@ pub fn check_build(config: &EngineConfig, extent: Option<Extent>, output: MapOut
 const BAND: f64 = 2.0;
 
 /// Bytes of a build besides its engine (in every estimate): the program, its libraries and
-/// threads, and the frames decoded for the estimate (a build of a few bricks peaked at 15 MB
-/// resident, 8 of them 640 x 480 frames).
+/// threads, and the frame being decoded (the code and libraries are about 8 MiB resident; a
+/// build of a few bricks from 640 x 480 frames peaks at 14 MiB).
 pub const BASE_MEMORY: f64 = 12.0 * 1048576.0;
 
 /// Bytes per brick of a log-odds map while it is built, besides its layers: the engine's grid

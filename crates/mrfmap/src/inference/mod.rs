@@ -31,7 +31,9 @@ mod vecmath;
 /// Which engine: defined with the maps, which record it.
 pub use crate::map::EngineKind;
 pub use crm::{CrmEngine, CrmParams, crm_ray_factors};
-pub use estimate::{BASE_MEMORY, Extent, MapOutput, check_build, estimate_memory, frames_extent, scan_extent};
+pub use estimate::{
+    BASE_MEMORY, Extent, MapOutput, check_build, estimate_memory, frames_extent, frames_extent_loaded, scan_extent,
+};
 pub use logodds::{LogOddsEngine, LogOddsParams, Marking, SensorModel};
 pub use merge::merge;
 pub use mrf::{

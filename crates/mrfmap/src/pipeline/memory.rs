@@ -4,7 +4,9 @@
 
 use crate::error::{Error, Result};
 use crate::frames::{Frame, Pose};
-use crate::inference::{EngineConfig, Extent, MapOutput, check_build, frames_extent};
+use std::borrow::Cow;
+
+use crate::inference::{EngineConfig, Extent, MapOutput, check_build, frames_extent, frames_extent_loaded};
 use crate::source::Dataset;
 
 /// Frames decoded for a memory estimate, at most.
@@ -14,12 +16,14 @@ pub const SAMPLE_FRAMES: usize = 8;
 pub const BUILD_ADVICE: &str = "use a coarser --resolution, or map less with --bounds or --max-range";
 
 /// Where the frames `indices` of `dataset` look, estimated from every pose and a few decoded
-/// frames (decoding every frame twice would double the I/O).
+/// frames (decoding every frame twice would double the I/O). The few are decoded one at a
+/// time, once for their ray lengths and again for each walk ([`frames_extent_loaded`]), not
+/// held together.
 pub fn dataset_extent(dataset: &Dataset, indices: &[usize], config: &EngineConfig) -> Result<Option<Extent>> {
     let step = indices.len().div_ceil(SAMPLE_FRAMES).max(1);
-    let sampled = indices.iter().step_by(step).map(|&i| dataset.frame(i)).collect::<Result<Vec<_>>>()?;
+    let sampled: Vec<usize> = indices.iter().step_by(step).copied().collect();
     let poses = indices.iter().map(|&i| dataset.frames()[i].pose);
-    Ok(frames_extent(poses, &sampled, config))
+    frames_extent_loaded(poses, sampled.len(), |k| dataset.frame(sampled[k]).map(Cow::Owned), config)
 }
 
 /// The memory check of a streamed build: the map's estimate from the poses so far and a few
@@ -71,5 +75,46 @@ impl<'a> Growth<'a> {
         }
         let extent = frames_extent(self.poses.iter().copied(), &self.sample, self.config);
         check_build(self.config, extent, self.output, BUILD_ADVICE)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::path::Path;
+
+    use super::*;
+    use crate::inference::EngineKind;
+    use crate::source::{Scene, simulate};
+
+    /// A dataset's estimate, its sampled frames decoded one at a time, is the estimate of the
+    /// same frames held together, for every engine (the MRF walks twice).
+    #[test]
+    fn a_dataset_estimate_equals_the_estimate_of_its_frames_held() {
+        let scene = Scene::from_toml(
+            "[camera]\nfx = 40.0\nfy = 40.0\ncx = 15.5\ncy = 11.5\nwidth = 32\nheight = 24\ndepth_scale = 5000.0\n\
+             [[box]]\nmin = [-1.0, -1.0, -0.1]\nmax = [1.0, 1.0, 0.0]\n\
+             [[box]]\nmin = [-0.2, -0.2, 0.0]\nmax = [0.2, 0.2, 0.5]\n\
+             [orbit]\ncenter = [0.0, 0.0, 0.0]\nradius = 1.5\nheight = 1.0\nviews = 20\n",
+            Path::new("scene.toml"),
+        )
+        .unwrap();
+        let dir = std::env::temp_dir().join(format!("mrfmap-estimate-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        simulate(&scene, &dir, 1).unwrap();
+        // (A noise-free scene writes no noise model: a zero one made the dataset unreadable.)
+        assert!(!dir.join("noise.toml").exists());
+        let dataset = Dataset::open(&dir).unwrap();
+        let indices: Vec<usize> = (0..dataset.frames().len()).collect();
+        let step = indices.len().div_ceil(SAMPLE_FRAMES);
+        let sampled: Vec<Frame> = indices.iter().step_by(step).map(|&i| dataset.frame(i).unwrap()).collect();
+        assert!(sampled.len() > 1 && sampled.len() <= SAMPLE_FRAMES);
+        for kind in [EngineKind::LogOdds, EngineKind::Crm, EngineKind::Mrf] {
+            let config = EngineConfig::new(kind, 0.05);
+            let held = frames_extent(indices.iter().map(|&i| dataset.frames()[i].pose), &sampled, &config);
+            let loaded = dataset_extent(&dataset, &indices, &config).unwrap();
+            assert!(held.is_some_and(|e| e.bricks > 0.0), "{kind:?}");
+            assert_eq!(held, loaded, "{kind:?}");
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -46,7 +46,7 @@ pub struct CrossedVoxels {
 }
 
 /// Finds the voxels a depth image's rays cross by projection (see the module documentation).
-/// It keeps its per-pixel buffers (about 26 bytes per pixel) from one frame to the next:
+/// It keeps its per-pixel buffers (about 9 bytes per pixel) from one frame to the next:
 /// allocating them afresh cost a tenth of the time in page faults.
 ///
 /// ```
@@ -182,36 +182,34 @@ fn walk_brick(
     }
 }
 
-/// `s / d` per component, in f32, with one division instead of three (divisions were a fifth
-/// of the per-pixel setup). Components that are zero (or a product too small to invert
-/// accurately) take the plain route.
-#[inline]
-fn reciprocals(d: [f64; 3], s: f64) -> [f32; 3] {
-    let p = d[0] * d[1] * d[2];
-    if p.abs() > 1e-100 {
-        let q = s / p;
-        [(d[1] * d[2] * q) as f32, (d[0] * d[2] * q) as f32, (d[0] * d[1] * q) as f32]
-    } else {
-        d.map(|x| (s / x) as f32)
-    }
-}
-
-/// Whether each of `segs` passes through the box `lo`..`hi` (relative to the camera): the slab
-/// test in camera depth, lane by lane with no branch, so that a row of pixels runs in SIMD
-/// lanes. A pixel without a segment (start after end) never passes.
+/// Whether each of `N` pixels' segments passes through the box `lo`..`hi` (relative to the
+/// camera): the slab test in camera depth, lane by lane with no branch, so that a row of
+/// pixels runs in SIMD lanes. `dirs[a][j]` is component `a` of lane `j`'s world direction per
+/// metre of camera depth. A pixel without a segment (start after end) never passes.
 #[inline(always)]
-fn slabs_cross<const N: usize>(segs: &[PixelSegment; N], lo: &[f32; 3], hi: &[f32; 3]) -> [bool; N] {
-    let mut t0: [f32; N] = std::array::from_fn(|j| segs[j].depths.0[0]);
-    let mut t1: [f32; N] = std::array::from_fn(|j| segs[j].depths.0[1]);
+fn slabs_cross<const N: usize>(
+    depths: &[PixelDepths; N],
+    dirs: &[[f32; N]; 3],
+    lo: &[f32; 3],
+    hi: &[f32; 3],
+) -> [bool; N] {
+    let mut t0: [f32; N] = std::array::from_fn(|j| depths[j].0[0]);
+    let mut t1: [f32; N] = std::array::from_fn(|j| depths[j].0[1]);
     for a in 0..3 {
         for j in 0..N {
-            let (ta, tb) = (lo[a] * segs[j].inv_dir[a], hi[a] * segs[j].inv_dir[a]);
+            let inv = 1.0 / dirs[a][j];
+            let (ta, tb) = (lo[a] * inv, hi[a] * inv);
             t0[j] = t0[j].max(ta.min(tb));
             t1[j] = t1[j].min(ta.max(tb));
         }
     }
     std::array::from_fn(|j| t0[j] < t1[j])
 }
+
+/// The depth pyramid's first level is of blocks of `BLOCK x BLOCK` pixels. The exact tests
+/// skip blocks that all miss a voxel's depths, and test the rest a block's row of pixels at a
+/// time, in lanes. Blocks of 8 x 8 pixels (eight lanes) took 1.1x the time.
+const BLOCK: usize = 4;
 
 /// The smaller of two numbers that are never NaN here: one instruction, where `f32::min`
 /// spends several on NaN handling (the pyramid and the box tests are made of these).
@@ -242,37 +240,19 @@ enum Seen {
 struct Segments {
     width: usize,
     height: usize,
-    /// Each pixel's segment; their camera-z depths are level 0 of the depth pyramid.
-    pixels: Vec<PixelSegment>,
-    /// Depth bounds per pyramid level 1, 2, ... (`levels[k - 1]`: blocks of `2^k x 2^k`).
+    /// Each pixel's segment in camera depth: level 0 of the depth pyramid.
+    pixels: Vec<PixelDepths>,
+    /// Depth bounds per pyramid level 2, 3, ... (`levels[k - 2]`: blocks of `2^k x 2^k`; the
+    /// first is of [`BLOCK`] x [`BLOCK`] pixels). Level 1 is not kept: its 4 bytes a pixel were
+    /// a fifth of a small build's heap, and a rectangle of at most 3 x 3 pixels, which it
+    /// served, is read from the pixels instead.
     levels: Vec<Level>,
-}
-
-/// One pixel's segment, parametrised by camera depth: the reciprocal of the world direction
-/// that advances one metre of camera z (for slab tests), and the segment's camera depths,
-/// which are also the pyramid's level 0 (one array for both: 20 bytes a pixel, where a range
-/// parametrisation needed 8 more for the depths).
-#[derive(Clone, Copy, Debug)]
-struct PixelSegment {
-    inv_dir: [f32; 3],
-    depths: PixelDepths,
-}
-
-impl PixelSegment {
-    /// No segment: its depths are empty, so no slab test passes.
-    const NONE: PixelSegment = PixelSegment { inv_dir: [0.0; 3], depths: PixelDepths::NONE };
-}
-
-impl From<PixelSegment> for Bounds {
-    #[inline]
-    fn from(p: PixelSegment) -> Bounds {
-        p.depths.into()
-    }
 }
 
 /// One pixel's segment in camera z, `[start, end]`: the pyramid's level 0. Its [`Bounds`]
 /// (one pixel's four bounds are two numbers twice) are made when read, so it takes 8 bytes a
-/// pixel where they took 16.
+/// pixel where they took 16. (The slab tests need the pixel's direction too, which
+/// [`View::dirs`] makes from its column and row: stored per pixel, it took 12 bytes more.)
 #[derive(Clone, Copy, Debug)]
 struct PixelDepths([f32; 2]);
 
@@ -360,59 +340,78 @@ impl Segments {
         let (width, height) = rays.size();
         (self.width, self.height) = (width, height);
         // Every pixel is written below, so only a change of size needs new buffers.
-        self.pixels.resize(width * height, PixelSegment::NONE);
+        self.pixels.resize(width * height, PixelDepths::NONE);
         self.levels.resize_with(self.levels.len().max(1), Level::default);
         let blocks = &mut self.levels[0];
-        blocks.width = width.div_ceil(2);
-        blocks.cells.resize(blocks.width * height.div_ceil(2), Bounds::NO_SEGMENT);
+        blocks.width = width.div_ceil(BLOCK);
+        blocks.cells.resize(blocks.width * height.div_ceil(BLOCK), Bounds::NO_SEGMENT);
         let inv_r = 1.0 / resolution;
-        let fill_row = |v: usize, pixels: &mut [PixelSegment], ends: &mut Vec<VoxelKey>| {
+        // `above[u]`: a voxel already among the ends, the end voxel of column `u` in an earlier
+        // row if it had one (in voxel units; NaN for none, which every comparison fails).
+        let fill_row = |v: usize, pixels: &mut [PixelDepths], ends: &mut Vec<VoxelKey>, above: &mut [[f64; 3]]| {
             // Each pixel is written once: those before `next_u` are done, the gap up to a
             // ray's pixel has no segment.
             let mut next_u = 0;
-            let mut last_end = [f64::NAN; 3]; // no end yet: every comparison fails
+            let mut last_end = [f64::NAN; 3]; // no end yet
             for ray in rays.row(v as u32) {
                 let u = ray.u as usize;
-                pixels[next_u..u].fill(PixelSegment::NONE);
+                pixels[next_u..u].fill(PixelDepths::NONE);
                 next_u = u + 1;
                 let Some(seg) = limits.hit_miss_segment(&ray, resolution) else {
-                    pixels[u] = PixelSegment::NONE;
+                    pixels[u] = PixelDepths::NONE;
                     continue;
                 };
-                pixels[u] = PixelSegment {
-                    inv_dir: reciprocals(ray.dir, ray.cz),
-                    depths: PixelDepths([(seg.start * ray.cz) as f32, (seg.end * ray.cz) as f32]),
-                };
+                pixels[u] = PixelDepths([(seg.start * ray.cz) as f32, (seg.end * ray.cz) as f32]);
                 if seg.hits_surface {
                     // The end in voxel units; neighbouring pixels mostly end in the same voxel
-                    // as the last one (`floor(q) == last` exactly when `last <= q < last + 1`),
-                    // which is cheaper to check than three floors (a quarter of this loop).
+                    // as the one to their left or above (`floor(q) == e` exactly when
+                    // `e <= q < e + 1`), which is cheaper to check than three floors (a quarter
+                    // of this loop), and keeps each voxel about once in `ends`, not once a row.
                     let q = [0, 1, 2].map(|a| (ray.origin[a] + seg.end * ray.dir[a]) * inv_r);
-                    if !(0..3).all(|a| q[a] >= last_end[a] && q[a] < last_end[a] + 1.0) {
+                    let holds = |e: &[f64; 3]| (0..3).all(|a| q[a] >= e[a] && q[a] < e[a] + 1.0);
+                    if holds(&last_end) {
+                        above[u] = last_end;
+                    } else if holds(&above[u]) {
+                        last_end = above[u];
+                    } else {
                         let end = VoxelKey([floor_i32(q[0]), floor_i32(q[1]), floor_i32(q[2])]);
                         last_end = end.0.map(|k| k as f64);
+                        above[u] = last_end;
                         ends.push(end);
                     }
                 }
             }
-            pixels[next_u..].fill(PixelSegment::NONE);
+            pixels[next_u..].fill(PixelDepths::NONE);
         };
-        // Pairs of rows, so each task also makes its row of 2 x 2 blocks while the pair is
-        // in cache (as a separate pass it cost as much as a tenth of the setup).
+        // `BLOCK` rows at a time, so each task also makes its row of blocks while the rows are
+        // in cache (as a separate pass it cost as much as a tenth of the setup): two rows of
+        // 2 x 2 blocks first (in a buffer of the task's), then the row of 4 x 4 ones.
+        let half = width.div_ceil(2);
         let rows: Vec<Vec<VoxelKey>> = self
             .pixels
-            .par_chunks_mut(2 * width)
+            .par_chunks_mut(BLOCK * width)
             .zip(blocks.cells.par_chunks_mut(blocks.width))
             .enumerate()
-            .map(|(pair, (pixels, block_row))| {
-                let mut ends = Vec::new();
-                for (dv, p) in pixels.chunks_mut(width).enumerate() {
-                    fill_row(2 * pair + dv, p, &mut ends);
-                }
-                let (upper, lower) = pixels.split_at(width);
-                reduce_rows(upper, if lower.is_empty() { upper } else { lower }, block_row);
-                ends
-            })
+            .map_init(
+                || (Vec::new(), vec![[f64::NAN; 3]; width]),
+                |(pairs, above), (chunk, (pixels, block_row))| {
+                    let mut ends = Vec::new();
+                    for (dv, p) in pixels.chunks_mut(width).enumerate() {
+                        fill_row(BLOCK * chunk + dv, p, &mut ends, above);
+                    }
+                    let rows: Vec<&[PixelDepths]> = pixels.chunks(width).collect();
+                    pairs.resize(2 * half, Bounds::NO_SEGMENT);
+                    let (first, second) = pairs.split_at_mut(half);
+                    reduce_rows(rows[0], rows.get(1).unwrap_or(&rows[0]), first);
+                    if let Some(third) = rows.get(2) {
+                        reduce_rows(third, rows.get(3).unwrap_or(third), second);
+                        reduce_rows(first, second, block_row);
+                    } else {
+                        reduce_rows(first, first, block_row);
+                    }
+                    ends
+                },
+            )
             .collect();
         let ends = rows.concat();
         self.build_pyramid();
@@ -430,9 +429,9 @@ impl Segments {
     fn bounds(&self, rect: &Rect) -> Bounds {
         let Rect { u0, u1, v0, v1 } = *rect;
         let span = (u1 - u0 + 1).max(v1 - v0 + 1);
-        let k = ((usize::BITS - 1 - span.leading_zeros()) as usize).min(self.levels.len());
+        let k = ((usize::BITS - 1 - span.leading_zeros()) as usize).min(self.levels.len() + 1);
         let mut b = Bounds::EMPTY;
-        if k == 0 {
+        if k < 2 {
             for v in v0..v1 + 1 {
                 for u in u0..u1 + 1 {
                     b = b.union(self.pixels[v * self.width + u].into());
@@ -440,7 +439,7 @@ impl Segments {
             }
             return b;
         }
-        let level = &self.levels[k - 1];
+        let level = &self.levels[k - 2];
         // (Half-open ranges: the end checks of inclusive ones were 1% of a projected frame.)
         for cv in (v0 >> k)..(v1 >> k) + 1 {
             for cu in (u0 >> k)..(u1 >> k) + 1 {
@@ -450,10 +449,10 @@ impl Segments {
         b
     }
 
-    /// Levels 2, 3, ... of the min/max pyramid, down to one block (reusing the previous
+    /// Levels 3, 4, ... of the min/max pyramid, down to one block (reusing the previous
     /// frame's buffers).
     fn build_pyramid(&mut self) {
-        let (mut k, mut h) = (0, self.height.div_ceil(2));
+        let (mut k, mut h) = (0, self.height.div_ceil(BLOCK));
         while self.levels[k].width > 1 || h > 1 {
             if self.levels.len() == k + 1 {
                 self.levels.push(Level::default());
@@ -615,6 +614,11 @@ struct View<'a> {
     dense_range2: f64,
     /// Voxels (keys, upper end exclusive) outside which no box is looked at.
     keep: Option<Box3>,
+    /// A pixel's world direction per metre of camera depth is `R (x_u, y_v, 1)`, the sum of a
+    /// part per column, `x_u R e_x` (per axis, so that a row of pixels loads as lanes), and a
+    /// part per row, `y_v R e_y + R e_z`: see [`View::dirs`].
+    col_dirs: [Vec<f32>; 3],
+    row_dirs: Vec<[f32; 3]>,
 }
 
 impl<'a> View<'a> {
@@ -628,6 +632,13 @@ impl<'a> View<'a> {
         });
         let c = &frame.camera;
         let dense_range = dense_range(&frame.camera, resolution);
+        let col_dirs = [0, 1, 2].map(|a| {
+            let col = |u: usize| (c.pixel_ray(u as f64, 0.0).x * r_wc[(a, 0)]) as f32;
+            (0..seg.width).map(col).chain([0.0; BLOCK]).collect()
+        });
+        let row_dirs = (0..seg.height)
+            .map(|v| [0, 1, 2].map(|a| (c.pixel_ray(0.0, v as f64).y * r_wc[(a, 1)] + r_wc[(a, 2)]) as f32))
+            .collect();
         View {
             seg,
             r_wc,
@@ -643,6 +654,8 @@ impl<'a> View<'a> {
             v_last: (seg.height - 1) as f64,
             dense_range2: dense_range * dense_range,
             keep: None,
+            col_dirs,
+            row_dirs,
         }
     }
 
@@ -822,12 +835,25 @@ impl<'a> View<'a> {
         (seen, Some(Footprint { rect, z_near: z_near32, z_far: z_far32, dense }))
     }
 
+    /// The world directions per metre of camera depth of pixels `u..u + N` of row `v`, as
+    /// lanes per axis (`N` at most [`BLOCK`]; the columns past the image's last have their row's
+    /// part only, and no segment).
+    #[inline(always)]
+    fn dirs<const N: usize>(&self, u: usize, v: usize) -> [[f32; N]; 3] {
+        let row = self.row_dirs[v];
+        std::array::from_fn(|a| {
+            let cols = &self.col_dirs[a][u..u + N];
+            std::array::from_fn(|j| cols[j] + row[a])
+        })
+    }
+
     /// The exact test for one voxel: does the segment of some pixel in `rect` pass through it?
     fn voxel_crossed(&self, key: [i32; 3], footprint: &Footprint) -> bool {
         let r = self.resolution;
         let lo: [f32; 3] = std::array::from_fn(|a| (key[a] as f64 * r - self.origin[a]) as f32);
         let hi: [f32; 3] = std::array::from_fn(|a| ((key[a] + 1) as f64 * r - self.origin[a]) as f32);
-        let crosses = |u: usize, v: usize| slabs_cross(&[self.seg.pixels[v * self.seg.width + u]], &lo, &hi)[0];
+        let crosses =
+            |u: usize, v: usize| slabs_cross(&[self.seg.pixels[v * self.seg.width + u]], &self.dirs(u, v), &lo, &hi)[0];
         // Most undecided voxels hold a surface, and the ray through the middle of their image
         // ends inside them: try it first.
         let rect = &footprint.rect;
@@ -848,10 +874,8 @@ impl<'a> View<'a> {
                 return true;
             }
         }
-        // Then every pixel, skipping 4 x 4 blocks whose segments all miss the voxel's depths.
-        const K: usize = 2;
-        let k = K.min(self.seg.levels.len());
-        let blocks = &self.seg.levels[k - 1];
+        // Then every pixel, skipping blocks of pixels whose segments all miss the voxel's depths.
+        let (k, blocks) = (BLOCK.trailing_zeros() as usize, &self.seg.levels[0]);
         let (pixels, width, (z_near, z_far)) = (&self.seg.pixels, self.seg.width, (footprint.z_near, footprint.z_far));
         (rect.v0 >> k..(rect.v1 >> k) + 1).any(|bv| {
             (rect.u0 >> k..(rect.u1 >> k) + 1).any(|bu| {
@@ -865,12 +889,12 @@ impl<'a> View<'a> {
                 // in front of the voxel), then the slab tests of those left, side by side.
                 (v0..v1).any(|v| {
                     let row = &pixels[v * width..];
-                    let lanes: [PixelSegment; 1 << K] = std::array::from_fn(|j| match row.get(u0 + j) {
-                        Some(p) if u0 + j < u1 && !p.depths.miss(z_near, z_far) => *p,
-                        _ => PixelSegment::NONE,
+                    let lanes: [PixelDepths; BLOCK] = std::array::from_fn(|j| match row.get(u0 + j) {
+                        Some(p) if u0 + j < u1 && !p.miss(z_near, z_far) => *p,
+                        _ => PixelDepths::NONE,
                     });
-                    lanes.iter().any(|p| p.depths.0[0] <= p.depths.0[1])
-                        && slabs_cross(&lanes, &lo, &hi).contains(&true)
+                    lanes.iter().any(|p| p.0[0] <= p.0[1])
+                        && slabs_cross(&lanes, &self.dirs(u0, v), &lo, &hi).contains(&true)
                 })
             })
         })
@@ -895,34 +919,36 @@ mod tests {
         let (lo, hi) = ([0.1f32, -0.2, 1.0], [0.3f32, 0.0, 1.2]);
         let (mut crossing, mut missing) = (0, 0);
         for _ in 0..2000 {
-            let segs: [PixelSegment; 4] = std::array::from_fn(|_| {
+            // Rays through (x, y, 1) per metre of depth.
+            let mut dirs = [[0.0f32; 4], [0.0; 4], [1.0; 4]];
+            let depths: [PixelDepths; 4] = std::array::from_fn(|j| {
+                (dirs[0][j], dirs[1][j]) = (rng.range(-0.1, 0.4) as f32, rng.range(-0.3, 0.1) as f32);
                 if rng.uniform() < 0.2 {
-                    return PixelSegment::NONE;
+                    return PixelDepths::NONE;
                 }
-                // A ray through (x, y, 1) per metre of depth: inverse direction (1/x, 1/y, 1).
-                let (x, y) = (rng.range(-0.1, 0.4) as f32, rng.range(-0.3, 0.1) as f32);
                 let (a, b) = (rng.range(0.0, 1.5) as f32, rng.range(0.0, 1.5) as f32);
-                PixelSegment { inv_dir: [1.0 / x, 1.0 / y, 1.0], depths: PixelDepths([a.min(b), a.max(b)]) }
+                PixelDepths([a.min(b), a.max(b)])
             });
-            let lanes = slabs_cross(&segs, &lo, &hi);
-            for (seg, crossed) in segs.iter().zip(lanes) {
-                assert_eq!(crossed, slabs_cross(&[*seg], &lo, &hi)[0]);
-                let [start, end] = seg.depths.0;
+            let lanes = slabs_cross(&depths, &dirs, &lo, &hi);
+            for (j, crossed) in lanes.into_iter().enumerate() {
+                let dir = dirs.map(|d| [d[j]]);
+                assert_eq!(crossed, slabs_cross(&[depths[j]], &dir, &lo, &hi)[0]);
+                let [start, end] = depths[j].0;
                 // Brute force: depths where the point (x z, y z, z) lies in the box, sampled finely.
                 // (Inside by `margin`; samples 0.5 mm of depth apart.)
                 let brute = |margin: f32| {
                     (0..=3000).map(|i| start + (end - start) * i as f32 / 3000.0).any(|z| {
                         (0..3).all(|a| {
-                            let p = if a == 2 { z } else { z / seg.inv_dir[a] };
+                            let p = z * dir[a][0];
                             p > lo[a] + margin && p < hi[a] - margin
                         })
                     })
                 };
                 if brute(1e-4) {
-                    assert!(crossed, "{seg:?}");
+                    assert!(crossed, "{:?} {dir:?}", depths[j]);
                 }
                 if crossed {
-                    assert!(brute(-1e-3), "{seg:?}");
+                    assert!(brute(-1e-3), "{:?} {dir:?}", depths[j]);
                 }
                 if crossed { crossing += 1 } else { missing += 1 }
             }

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 
 use crate::atomic_file::write_atomic;
 use crate::error::{Error, Result};
-use crate::frames::{Camera, DepthImage, NoiseModel, Poly, Pose, Up, pose_to_tum};
+use crate::frames::{Camera, DepthImage, NoiseModel, Pose, Up, pose_to_tum};
 use crate::source::depth_png::{quantise_depth, write_depth_png};
 use crate::source::{Dataset, DepthNoise, NoiseStatistics, Scene, noise_statistics};
 
@@ -22,7 +22,8 @@ pub struct SimulationSummary {
 
 /// Renders every view of `scene` into `out`: `depth/` (noisy, seeded), `gt_depth/` (exact),
 /// `depth.txt`, `groundtruth.txt` (timestamps 0, 1, 2, ... s), `camera.toml` and `noise.toml`
-/// (the scene's model; a zero model for noise-free scenes).
+/// (the scene's model; none for a noise-free scene, whose dataset the engines then map with
+/// their default model).
 pub fn simulate(scene: &Scene, out: &Path, seed: u64) -> Result<SimulationSummary> {
     let mut writer = DatasetWriter::create(out, scene.camera, true)?;
     let mut valid_pixels = 0;
@@ -32,8 +33,9 @@ pub fn simulate(scene: &Scene, out: &Path, seed: u64) -> Result<SimulationSummar
         let noisy = scene.add_noise(&truth, seed, i);
         writer.add(i as f64, pose, &noisy, Some(&truth))?;
     }
-    let zero = NoiseModel::aggregate(Poly([0.0; 3]), Poly([0.0; 3]));
-    writer.finish(Some(scene.noise.as_ref().unwrap_or(&zero)))?;
+    // (A noise-free scene has no model to write: a zero std is no forward model, and a dataset
+    // holding one could not be opened.)
+    writer.finish(scene.noise.as_ref())?;
     Ok(SimulationSummary { frames: scene.views.len(), valid_pixels })
 }
 

@@ -9,8 +9,10 @@ built by bench/wavemap/build_wavemap.sh) and `mrfmap build --engine logodds`, th
 every round, and OctoMap (bench/octomap_driver.cpp, single-threaded; one run per dataset and
 resolution, only for datasets of at most --octomap-max-frames frames: it takes seconds per
 frame at 0.02 m). Per run: each tool's own integration time per frame (no PNG decoding), the
-whole process's wall time per frame, and its peak RSS (os.wait4). Prints one Markdown table row
-per setting (medians over rounds; ratios are of medians) for BENCHMARKS.md.
+whole process's wall time per frame, and its peak RSS (GNU time's %M: a child's `ru_maxrss` as
+Python's own wait4 reads it starts at the RSS of the process that forked it, Python's 14-15
+MiB, which hid every peak below that). Prints one Markdown table row per setting (medians over
+rounds; ratios are of medians) for BENCHMARKS.md.
 
 Semantics that differ (say them beside the numbers): wavemap marks a band in front of and
 behind each hit instead of the end voxel, cuts its max range on z-depth (we and OctoMap cut
@@ -39,9 +41,11 @@ ap.add_argument("--octomap", default="target/bench/octomap_driver")
 ap.add_argument("--mrfmap", default="target/release/mrfmap")
 ap.add_argument("--out", default="/tmp/mrfmap-wavemap-bench")
 a = ap.parse_args()
-for tool, path in (("wavemap", a.wavemap), ("mrfmap", a.mrfmap)):
+for tool, path, how in (("wavemap", a.wavemap, "bench/wavemap/build_wavemap.sh"),
+                        ("mrfmap", a.mrfmap, "cargo build --release"),
+                        ("GNU time", "/usr/bin/time", "Debian package `time`")):
     if not os.access(path, os.X_OK):
-        sys.exit(f"{tool} binary {path} not found (see bench/wavemap/build_wavemap.sh, cargo build --release)")
+        sys.exit(f"{tool} binary {path} not found (see {how})")
 os.makedirs(a.out, exist_ok=True)
 med = statistics.median
 
@@ -49,13 +53,12 @@ med = statistics.median
 def run(cmd):
     """(wall seconds, stdout, peak RSS MiB) of one child process."""
     t0 = time.perf_counter()
-    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
-    out = p.stdout.read().decode()
-    _, status, ru = os.wait4(p.pid, 0)
+    p = subprocess.run(["/usr/bin/time", "-f", "MAXRSS_KIB %M"] + cmd, capture_output=True, text=True)
     wall = time.perf_counter() - t0
-    if os.waitstatus_to_exitcode(status) != 0:
-        sys.exit(f"failed ({status}): {' '.join(cmd)}")
-    return wall, out, ru.ru_maxrss / 1024.0
+    if p.returncode != 0:
+        sys.exit(f"failed ({p.returncode}): {' '.join(cmd)}\n{p.stderr[-2000:]}")
+    rss = int(re.findall(r"MAXRSS_KIB (\d+)", p.stderr)[-1])
+    return wall, p.stdout, rss / 1024.0
 
 
 def frames_of(ds):

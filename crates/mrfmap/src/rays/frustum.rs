@@ -349,18 +349,13 @@ impl Segments {
         // `above[u]`: a voxel already among the ends, the end voxel of column `u` in an earlier
         // row if it had one (in voxel units; NaN for none, which every comparison fails).
         let fill_row = |v: usize, pixels: &mut [PixelDepths], ends: &mut Vec<VoxelKey>, above: &mut [[f64; 3]]| {
-            // Each pixel is written once: those before `next_u` are done, the gap up to a
-            // ray's pixel has no segment.
-            let mut next_u = 0;
+            // No segment unless a ray gives one (a fill the compiler vectorises, where
+            // filling the gaps between valid pixels took bookkeeping per pixel).
+            pixels.fill(PixelDepths::NONE);
             let mut last_end = [f64::NAN; 3]; // no end yet
             for ray in rays.row(v as u32) {
                 let u = ray.u as usize;
-                pixels[next_u..u].fill(PixelDepths::NONE);
-                next_u = u + 1;
-                let Some(seg) = limits.hit_miss_segment(&ray, resolution) else {
-                    pixels[u] = PixelDepths::NONE;
-                    continue;
-                };
+                let Some(seg) = limits.hit_miss_segment(&ray, resolution) else { continue };
                 pixels[u] = PixelDepths([(seg.start * ray.cz) as f32, (seg.end * ray.cz) as f32]);
                 if seg.hits_surface {
                     // The end in voxel units; neighbouring pixels mostly end in the same voxel
@@ -381,7 +376,6 @@ impl Segments {
                     }
                 }
             }
-            pixels[next_u..].fill(PixelDepths::NONE);
         };
         // `BLOCK` rows at a time, so each task also makes its row of blocks while the rows are
         // in cache (as a separate pass it cost as much as a tenth of the setup): two rows of

@@ -380,6 +380,7 @@ impl Segments {
         // `BLOCK` rows at a time, so each task also makes its row of blocks while the rows are
         // in cache (as a separate pass it cost as much as a tenth of the setup): two rows of
         // 2 x 2 blocks first (in a buffer of the task's), then the row of 4 x 4 ones.
+        const { assert!(BLOCK == 4, "blocks are made from 2 x 2 ones in one step") };
         let half = width.div_ceil(2);
         let rows: Vec<Vec<VoxelKey>> = self
             .pixels
@@ -393,12 +394,15 @@ impl Segments {
                     for (dv, p) in pixels.chunks_mut(width).enumerate() {
                         fill_row(BLOCK * chunk + dv, p, &mut ends, above);
                     }
-                    let rows: Vec<&[PixelDepths]> = pixels.chunks(width).collect();
+                    // (The last chunk may have fewer rows: a missing row pairs with its
+                    // neighbour, as in `reduce_rows`.)
+                    let mut rows = pixels.chunks(width);
+                    let row0 = rows.next().expect("a chunk has a row");
                     pairs.resize(2 * half, Bounds::NO_SEGMENT);
                     let (first, second) = pairs.split_at_mut(half);
-                    reduce_rows(rows[0], rows.get(1).unwrap_or(&rows[0]), first);
-                    if let Some(third) = rows.get(2) {
-                        reduce_rows(third, rows.get(3).unwrap_or(third), second);
+                    reduce_rows(row0, rows.next().unwrap_or(row0), first);
+                    if let Some(row2) = rows.next() {
+                        reduce_rows(row2, rows.next().unwrap_or(row2), second);
                         reduce_rows(first, second, block_row);
                     } else {
                         reduce_rows(first, first, block_row);

@@ -184,12 +184,13 @@ fn walk_brick(
 
 /// Whether each of `N` pixels' segments passes through the box `lo`..`hi` (relative to the
 /// camera): the slab test in camera depth, lane by lane with no branch, so that a row of
-/// pixels runs in SIMD lanes. `dirs[a][j]` is component `a` of lane `j`'s world direction per
-/// metre of camera depth. A pixel without a segment (start after end) never passes.
+/// pixels runs in SIMD lanes. `inv_dirs[a][j]` is the reciprocal of component `a` of lane `j`'s
+/// world direction per metre of camera depth. A pixel without a segment (start after end)
+/// never passes.
 #[inline(always)]
 fn slabs_cross<const N: usize>(
     depths: &[PixelDepths; N],
-    dirs: &[[f32; N]; 3],
+    inv_dirs: &[[f32; N]; 3],
     lo: &[f32; 3],
     hi: &[f32; 3],
 ) -> [bool; N] {
@@ -197,8 +198,7 @@ fn slabs_cross<const N: usize>(
     let mut t1: [f32; N] = std::array::from_fn(|j| depths[j].0[1]);
     for a in 0..3 {
         for j in 0..N {
-            let inv = 1.0 / dirs[a][j];
-            let (ta, tb) = (lo[a] * inv, hi[a] * inv);
+            let (ta, tb) = (lo[a] * inv_dirs[a][j], hi[a] * inv_dirs[a][j]);
             t0[j] = t0[j].max(ta.min(tb));
             t1[j] = t1[j].min(ta.max(tb));
         }
@@ -252,7 +252,7 @@ struct Segments {
 /// One pixel's segment in camera z, `[start, end]`: the pyramid's level 0. Its [`Bounds`]
 /// (one pixel's four bounds are two numbers twice) are made when read, so it takes 8 bytes a
 /// pixel where they took 16. (The slab tests need the pixel's direction too, which
-/// [`View::dirs`] makes from its column and row: stored per pixel, it took 12 bytes more.)
+/// [`View::inv_dirs`] makes from its column and row: stored per pixel, it took 12 bytes more.)
 #[derive(Clone, Copy, Debug)]
 struct PixelDepths([f32; 2]);
 
@@ -614,9 +614,9 @@ struct View<'a> {
     keep: Option<Box3>,
     /// A pixel's world direction per metre of camera depth is `R (x_u, y_v, 1)`, the sum of a
     /// part per column, `x_u R e_x` (per axis, so that a row of pixels loads as lanes), and a
-    /// part per row, `y_v R e_y + R e_z`: see [`View::dirs`].
-    col_dirs: [Vec<f32>; 3],
-    row_dirs: Vec<[f32; 3]>,
+    /// part per row, `y_v R e_y + R e_z`: see [`View::inv_dirs`].
+    col_dirs: [Vec<f64>; 3],
+    row_dirs: Vec<[f64; 3]>,
 }
 
 impl<'a> View<'a> {
@@ -631,11 +631,11 @@ impl<'a> View<'a> {
         let c = &frame.camera;
         let dense_range = dense_range(&frame.camera, resolution);
         let col_dirs = [0, 1, 2].map(|a| {
-            let col = |u: usize| (c.pixel_ray(u as f64, 0.0).x * r_wc[(a, 0)]) as f32;
+            let col = |u: usize| c.pixel_ray(u as f64, 0.0).x * r_wc[(a, 0)];
             (0..seg.width).map(col).chain([0.0; BLOCK]).collect()
         });
         let row_dirs = (0..seg.height)
-            .map(|v| [0, 1, 2].map(|a| (c.pixel_ray(0.0, v as f64).y * r_wc[(a, 1)] + r_wc[(a, 2)]) as f32))
+            .map(|v| [0, 1, 2].map(|a| c.pixel_ray(0.0, v as f64).y * r_wc[(a, 1)] + r_wc[(a, 2)]))
             .collect();
         View {
             seg,
@@ -833,15 +833,18 @@ impl<'a> View<'a> {
         (seen, Some(Footprint { rect, z_near: z_near32, z_far: z_far32, dense }))
     }
 
-    /// The world directions per metre of camera depth of pixels `u..u + N` of row `v`, as
-    /// lanes per axis (`N` at most [`BLOCK`]; the columns past the image's last have their row's
-    /// part only, and no segment).
+    /// The reciprocals of the world directions per metre of camera depth of pixels `u..u + N`
+    /// of row `v`, as lanes per axis (`N` at most [`BLOCK`]; the columns past the image's last
+    /// have their row's part only, and no segment). Summed and inverted in f64 and rounded
+    /// once, as the per-pixel values were when they were stored: with an f32 sum and
+    /// division, a row of pixels whose rays pass exactly through voxel corners (a symmetric
+    /// simulated scene) lost 60 voxels the walk keeps.
     #[inline(always)]
-    fn dirs<const N: usize>(&self, u: usize, v: usize) -> [[f32; N]; 3] {
+    fn inv_dirs<const N: usize>(&self, u: usize, v: usize) -> [[f32; N]; 3] {
         let row = self.row_dirs[v];
         std::array::from_fn(|a| {
             let cols = &self.col_dirs[a][u..u + N];
-            std::array::from_fn(|j| cols[j] + row[a])
+            std::array::from_fn(|j| (1.0 / (cols[j] + row[a])) as f32)
         })
     }
 
@@ -850,8 +853,9 @@ impl<'a> View<'a> {
         let r = self.resolution;
         let lo: [f32; 3] = std::array::from_fn(|a| (key[a] as f64 * r - self.origin[a]) as f32);
         let hi: [f32; 3] = std::array::from_fn(|a| ((key[a] + 1) as f64 * r - self.origin[a]) as f32);
-        let crosses =
-            |u: usize, v: usize| slabs_cross(&[self.seg.pixels[v * self.seg.width + u]], &self.dirs(u, v), &lo, &hi)[0];
+        let crosses = |u: usize, v: usize| {
+            slabs_cross(&[self.seg.pixels[v * self.seg.width + u]], &self.inv_dirs(u, v), &lo, &hi)[0]
+        };
         // Most undecided voxels hold a surface, and the ray through the middle of their image
         // ends inside them: try it first.
         let rect = &footprint.rect;
@@ -892,7 +896,7 @@ impl<'a> View<'a> {
                         _ => PixelDepths::NONE,
                     });
                     lanes.iter().any(|p| p.0[0] <= p.0[1])
-                        && slabs_cross(&lanes, &self.dirs(u0, v), &lo, &hi).contains(&true)
+                        && slabs_cross(&lanes, &self.inv_dirs(u0, v), &lo, &hi).contains(&true)
                 })
             })
         })
@@ -917,36 +921,37 @@ mod tests {
         let (lo, hi) = ([0.1f32, -0.2, 1.0], [0.3f32, 0.0, 1.2]);
         let (mut crossing, mut missing) = (0, 0);
         for _ in 0..2000 {
-            // Rays through (x, y, 1) per metre of depth.
-            let mut dirs = [[0.0f32; 4], [0.0; 4], [1.0; 4]];
+            // Rays through (x, y, 1) per metre of depth: inverse directions (1/x, 1/y, 1).
+            let mut inv = [[0.0f32; 4], [0.0; 4], [1.0; 4]];
             let depths: [PixelDepths; 4] = std::array::from_fn(|j| {
-                (dirs[0][j], dirs[1][j]) = (rng.range(-0.1, 0.4) as f32, rng.range(-0.3, 0.1) as f32);
+                let (x, y) = (rng.range(-0.1, 0.4) as f32, rng.range(-0.3, 0.1) as f32);
+                (inv[0][j], inv[1][j]) = (1.0 / x, 1.0 / y);
                 if rng.uniform() < 0.2 {
                     return PixelDepths::NONE;
                 }
                 let (a, b) = (rng.range(0.0, 1.5) as f32, rng.range(0.0, 1.5) as f32);
                 PixelDepths([a.min(b), a.max(b)])
             });
-            let lanes = slabs_cross(&depths, &dirs, &lo, &hi);
+            let lanes = slabs_cross(&depths, &inv, &lo, &hi);
             for (j, crossed) in lanes.into_iter().enumerate() {
-                let dir = dirs.map(|d| [d[j]]);
-                assert_eq!(crossed, slabs_cross(&[depths[j]], &dir, &lo, &hi)[0]);
+                let lane = inv.map(|d| [d[j]]);
+                assert_eq!(crossed, slabs_cross(&[depths[j]], &lane, &lo, &hi)[0]);
                 let [start, end] = depths[j].0;
                 // Brute force: depths where the point (x z, y z, z) lies in the box, sampled finely.
                 // (Inside by `margin`; samples 0.5 mm of depth apart.)
                 let brute = |margin: f32| {
                     (0..=3000).map(|i| start + (end - start) * i as f32 / 3000.0).any(|z| {
                         (0..3).all(|a| {
-                            let p = z * dir[a][0];
+                            let p = z / lane[a][0];
                             p > lo[a] + margin && p < hi[a] - margin
                         })
                     })
                 };
                 if brute(1e-4) {
-                    assert!(crossed, "{:?} {dir:?}", depths[j]);
+                    assert!(crossed, "{:?} {lane:?}", depths[j]);
                 }
                 if crossed {
-                    assert!(brute(-1e-3), "{:?} {dir:?}", depths[j]);
+                    assert!(brute(-1e-3), "{:?} {lane:?}", depths[j]);
                 }
                 if crossed { crossing += 1 } else { missing += 1 }
             }

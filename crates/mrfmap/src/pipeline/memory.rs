@@ -2,10 +2,10 @@
 //! from every pose and a few decoded frames ([`dataset_extent`]), and a stream's, whose length
 //! is known only at its end, re-estimated as it doubles ([`Growth`]).
 
-use crate::error::{Error, Result};
-use crate::frames::{Frame, Pose};
 use std::borrow::Cow;
 
+use crate::error::{Error, Result};
+use crate::frames::{Frame, Pose};
 use crate::inference::{EngineConfig, Extent, MapOutput, check_build, frames_extent, frames_extent_loaded};
 use crate::source::Dataset;
 

@@ -15,7 +15,8 @@ use crate::source::bag::{Bag, BagOptions, DepthStream};
 
 /// Runs `build` on the posed depth images of the bag at `path` (those `frames` names, all
 /// when empty, minus `exclude`), streamed, its memory checked for `config` building into
-/// `output`; returns what `build` made and the frame indices it was given. Skipped images are summarised in a warning; none posed is an error.
+/// `output`; returns what `build` made and the frame indices it was given. Skipped images are
+/// summarised in a warning; none posed is an error.
 pub fn stream_bag<T>(
     path: &Path,
     options: BagOptions,

@@ -116,7 +116,7 @@ impl Projector {
         let rays = FrameRays::with_camera_rays(frame, &mut self.camera_rays);
         let ends = self.segments.fill(&rays, limits, resolution);
         let Some(deepest) = self.segments.deepest() else { return CrossedVoxels::default() };
-        let mut view = View::new(frame, &self.segments, resolution);
+        let mut view = View::new(&rays, &self.segments, resolution);
         view.keep = keep.map(|k| {
             let (lo, hi) = box_keys(k, resolution);
             Box3 { lo, hi: hi.map(|h| h + 1) }
@@ -620,8 +620,11 @@ struct View<'a> {
 }
 
 impl<'a> View<'a> {
-    fn new(frame: &Frame, seg: &'a Segments, resolution: f64) -> Self {
-        let (r_wc, origin) = super::pose_parts(&frame.pose);
+    /// The view of `rays` (made with their camera rays cached, whose columns' `x` and rows'
+    /// `y` the slab tests' directions are made of) over the segments `seg`.
+    fn new(rays: &FrameRays, seg: &'a Segments, resolution: f64) -> Self {
+        let (frame, r_wc, origin) = (rays.frame, rays.rotation, rays.origin);
+        let camera = rays.camera_rays.expect("the projection's rays cache their camera rays");
         let r_cw: Matrix3<f64> = r_wc.transpose();
         let base = r_cw * -Vector3::from(origin);
         let step = [0, 1, 2].map(|a| {
@@ -630,13 +633,8 @@ impl<'a> View<'a> {
         });
         let c = &frame.camera;
         let dense_range = dense_range(&frame.camera, resolution);
-        let col_dirs = [0, 1, 2].map(|a| {
-            let col = |u: usize| c.pixel_ray(u as f64, 0.0).x * r_wc[(a, 0)];
-            (0..seg.width).map(col).chain([0.0; BLOCK]).collect()
-        });
-        let row_dirs = (0..seg.height)
-            .map(|v| [0, 1, 2].map(|a| c.pixel_ray(0.0, v as f64).y * r_wc[(a, 1)] + r_wc[(a, 2)]))
-            .collect();
+        let col_dirs = [0, 1, 2].map(|a| camera.xs.iter().map(|x| x * r_wc[(a, 0)]).chain([0.0; BLOCK]).collect());
+        let row_dirs = camera.ys.iter().map(|y| [0, 1, 2].map(|a| y * r_wc[(a, 1)] + r_wc[(a, 2)])).collect();
         View {
             seg,
             r_wc,

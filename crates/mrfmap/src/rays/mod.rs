@@ -175,8 +175,11 @@ impl<'a> FrameRays<'a> {
 
     /// Rays of the valid pixels of row `v`, left to right.
     pub fn row(&self, v: u32) -> RowRays<'_, 'a> {
-        let norms = self.camera_rays.map(|c| c.row_norms(v));
-        RowRays { rays: self, v, depth: self.frame.depth.row(v), u: 0, norms }
+        let cached = self.camera_rays.map(|c| {
+            let (norm, inv) = c.row_norms(v);
+            (c, norm, inv)
+        });
+        RowRays { rays: self, v, depth: self.frame.depth.row(v), u: 0, cached }
     }
 
     /// The ray of pixel `(u, v)`, `None` if its depth is not valid (zero, negative or not
@@ -230,8 +233,8 @@ pub struct RowRays<'r, 'a> {
     depth: &'a [f32],
     /// The next pixel's column.
     u: usize,
-    /// With cached camera rays: the row's z = 1 norms and their reciprocals.
-    norms: Option<(Vec<f64>, Vec<f64>)>,
+    /// With cached camera rays: those, and the row's z = 1 norms and their reciprocals.
+    cached: Option<(&'a CameraRays, Vec<f64>, Vec<f64>)>,
 }
 
 impl Iterator for RowRays<'_, '_> {
@@ -246,12 +249,12 @@ impl Iterator for RowRays<'_, '_> {
                 continue;
             }
             let rays = self.rays;
-            return Some(match (&self.norms, rays.camera_rays) {
-                (Some((norm, inv)), Some(c)) => {
+            return Some(match &self.cached {
+                Some((c, norm, inv)) => {
                     let unit = unit_along(c.xs[u], c.ys[self.v as usize], inv[u]);
                     rays.ray_along(u as u32, self.v, z, unit, norm[u], inv[u])
                 }
-                _ => match rays.ray_of(u as u32, self.v, z) {
+                None => match rays.ray_of(u as u32, self.v, z) {
                     Some(ray) => ray,
                     None => continue,
                 },

@@ -2,7 +2,7 @@
 """Log-odds against wavemap and OctoMap on the same frames, alternating (issue #34).
 
 usage: bench/wavemap.py [--resolutions 0.05,0.02] [--threads 1,2] [--rounds 3] [--max-range 6]
-                        [--octomap-max-frames 20] DATASET...
+                        [--octomap-max-frames 20] [--marking project|walk|centres] DATASET...
 
 Per dataset, resolution and thread count, each round runs `wavemap_build` (bench/wavemap/,
 built by bench/wavemap/build_wavemap.sh) and `mrfmap build --engine logodds`, the order swapped
@@ -39,6 +39,7 @@ ap.add_argument("--octomap-max-frames", type=int, default=20)
 ap.add_argument("--wavemap", default=os.environ.get("WAVEMAP_BIN", "/tmp/wavemap-bin/wavemap_build"))
 ap.add_argument("--octomap", default="target/bench/octomap_driver")
 ap.add_argument("--mrfmap", default="target/release/mrfmap")
+ap.add_argument("--marking", default="project", help="mrfmap's --marking (centres: the approximate model)")
 ap.add_argument("--out", default="/tmp/mrfmap-wavemap-bench")
 a = ap.parse_args()
 for tool, path, how in (("wavemap", a.wavemap, "bench/wavemap/build_wavemap.sh"),
@@ -75,7 +76,7 @@ def wavemap(ds, res, threads):
 
 def mrfmap(ds, res, threads, mapf):
     cmd = [a.mrfmap, "build", ds, "-o", mapf, "--engine", "logodds", "--resolution", res, "--quiet",
-           "--threads", str(threads)] + (["--max-range", str(a.max_range)] if a.max_range > 0 else [])
+           "--threads", str(threads), "--marking", a.marking] + (["--max-range", str(a.max_range)] if a.max_range > 0 else [])
     wall, out, rss = run(cmd)
     m = re.search(r"(\d+) frames, (\d+) voxels \((\d+) occupied\), ([0-9.]+) ms/frame", out)
     return dict(integ=float(m.group(4)), wall=wall, rss=rss, occ=int(m.group(3)))

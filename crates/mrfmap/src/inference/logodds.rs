@@ -124,9 +124,9 @@ impl Default for LogOddsParams {
     }
 }
 
-/// How [`SensorModel::HitMiss`] finds the voxels the rays of a depth image cross. Both give
-/// the same voxels (up to rays that graze a voxel's edge or corner); range scans are always
-/// walked.
+/// How [`SensorModel::HitMiss`] finds the voxels the rays of a depth image cross. `Walk` and
+/// `Project` give the same voxels (up to rays that graze a voxel's edge or corner), OctoMap's;
+/// `Centres` is a faster approximation of them. Range scans are always walked.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum Marking {
     /// Walk every ray ([`for_each_crossing`]): work grows with the number of rays times
@@ -140,9 +140,18 @@ pub enum Marking {
     /// [`crossed_voxels`]: crate::rays::Projector::crossed_voxels
     #[default]
     Project,
+    /// Not OctoMap's voxels: a voxel is free when its centre lies in front of the depth at
+    /// the pixel it projects to, occupied when it holds a surface point
+    /// ([`centre_voxels`]), as voxblox's and wavemap's projective integrators decide. Voxels
+    /// that rays only clip are left out, and far voxels smaller than a pixel are all cleared,
+    /// not only those a ray hits. About twice as fast as `Project`; RESULTS.md compares the
+    /// maps' held-out accuracy.
+    ///
+    /// [`centre_voxels`]: crate::rays::Projector::centre_voxels
+    Centres,
 }
 
-crate::choice::choice!(Marking, "marking", Project => "project", Walk => "walk");
+crate::choice::choice!(Marking, "marking", Project => "project", Walk => "walk", Centres => "centres");
 
 /// Merging log-odds maps ([`super::merge`]): the sum of the log-odds, clamped to the maps'
 /// clamping bounds (probabilities).
@@ -301,6 +310,11 @@ impl Engine for LogOddsEngine {
                     self.grid.resolution(),
                     self.params.keep.as_ref(),
                 );
+                self.apply_marks(ScanMarks::of_crossed(crossed));
+            }
+            (SensorModel::HitMiss { .. }, Marking::Centres) => {
+                let r = self.grid.resolution();
+                let crossed = self.projector.centre_voxels(frame, &self.limits, r, self.params.keep.as_ref());
                 self.apply_marks(ScanMarks::of_crossed(crossed));
             }
             _ => self.integrate_rays(&Rays::of_frame(frame)),

@@ -253,7 +253,8 @@ mod tests {
 
     #[test]
     fn log_odds_tiles_equal_the_whole_map() {
-        for marking in [crate::inference::Marking::Project, crate::inference::Marking::Walk] {
+        use crate::inference::Marking;
+        for marking in [Marking::Project, Marking::Walk, Marking::Centres] {
             let mut config = EngineConfig::new(EngineKind::LogOdds, 0.1);
             config.logodds.marking = marking;
             tiles_equal_whole(&config);

@@ -35,6 +35,8 @@ use crate::frames::{Camera, DepthImage, Frame};
 use crate::map::{Aabb, box_keys};
 use crate::map::{BRICK_EDGE, BrickKey, SlotMask, VoxelKey, floor_i32, mask_set};
 
+mod centres;
+
 /// The voxels one depth image's rays cross, and the voxels holding the measured surfaces.
 #[derive(Clone, Debug, Default)]
 pub struct CrossedVoxels {
@@ -115,13 +117,9 @@ impl Projector {
     ) -> CrossedVoxels {
         let rays = FrameRays::with_camera_rays(frame, &mut self.camera_rays);
         let ends = self.segments.fill(&rays, limits, resolution);
-        let Some(deepest) = self.segments.deepest() else { return CrossedVoxels::default() };
-        let mut view = View::new(&rays, &self.segments, resolution);
-        view.keep = keep.map(|k| {
-            let (lo, hi) = box_keys(k, resolution);
-            Box3 { lo, hi: hi.map(|h| h + 1) }
-        });
-        let root = view.root_box(deepest as f64, limits);
+        let Some((view, root)) = View::over(&rays, &self.segments, limits, resolution, keep) else {
+            return CrossedVoxels::default();
+        };
         // The top of the tree is cheap and serial; the voxel-level work of each undecided
         // brick is independent, so bricks go to the thread pool.
         let mut crossed = Vec::new();
@@ -337,7 +335,34 @@ impl Segments {
     /// Fills the buffers for `frame`; returns the voxels of the segment ends that are
     /// measured surfaces.
     fn fill(&mut self, rays: &FrameRays, limits: &RayLimits, resolution: f64) -> Vec<VoxelKey> {
-        let (width, height) = rays.size();
+        let inv_r = 1.0 / resolution;
+        let width = rays.size().0;
+        self.fill_with(rays.size(), |v, pixels, ends, above: &mut Vec<[f64; 3]>| {
+            // (`above[u]`: NaN for none, which every comparison fails.)
+            above.resize(width, [f64::NAN; 3]);
+            let mut last_end = [f64::NAN; 3]; // no end yet
+            for ray in rays.row(v as u32) {
+                let u = ray.u as usize;
+                let Some(seg) = limits.hit_miss_segment(&ray, resolution) else { continue };
+                pixels[u] = PixelDepths([(seg.start * ray.cz) as f32, (seg.end * ray.cz) as f32]);
+                if seg.hits_surface {
+                    let q = [0, 1, 2].map(|a| (ray.origin[a] + seg.end * ray.dir[a]) * inv_r);
+                    note_end(q, &mut last_end, &mut above[u], ends);
+                }
+            }
+        })
+    }
+
+    /// Fills the buffers for an image of `width x height` pixels, row `v` by
+    /// `fill_row(v, pixels, ends, scratch)`: it sets the segments of the row's `pixels` (which
+    /// start as [`PixelDepths::NONE`]) and adds the voxels of their surface ends to `ends`,
+    /// with `scratch` kept from row to row (each voxel need only be there once, and
+    /// neighbouring pixels mostly end in the same voxel). Returns the ends.
+    fn fill_with<S, F>(&mut self, (width, height): (usize, usize), fill_row: F) -> Vec<VoxelKey>
+    where
+        S: Default + Send,
+        F: Fn(usize, &mut [PixelDepths], &mut Vec<VoxelKey>, &mut S) + Sync,
+    {
         (self.width, self.height) = (width, height);
         // Every pixel is written below, so only a change of size needs new buffers.
         self.pixels.resize(width * height, PixelDepths::NONE);
@@ -345,38 +370,6 @@ impl Segments {
         let blocks = &mut self.levels[0];
         blocks.width = width.div_ceil(BLOCK);
         blocks.cells.resize(blocks.width * height.div_ceil(BLOCK), Bounds::NO_SEGMENT);
-        let inv_r = 1.0 / resolution;
-        // `above[u]`: a voxel already among the ends, the end voxel of column `u` in an earlier
-        // row if it had one (in voxel units; NaN for none, which every comparison fails).
-        let fill_row = |v: usize, pixels: &mut [PixelDepths], ends: &mut Vec<VoxelKey>, above: &mut [[f64; 3]]| {
-            // No segment unless a ray gives one (a fill the compiler vectorises, where
-            // filling the gaps between valid pixels took bookkeeping per pixel).
-            pixels.fill(PixelDepths::NONE);
-            let mut last_end = [f64::NAN; 3]; // no end yet
-            for ray in rays.row(v as u32) {
-                let u = ray.u as usize;
-                let Some(seg) = limits.hit_miss_segment(&ray, resolution) else { continue };
-                pixels[u] = PixelDepths([(seg.start * ray.cz) as f32, (seg.end * ray.cz) as f32]);
-                if seg.hits_surface {
-                    // The end in voxel units; neighbouring pixels mostly end in the same voxel
-                    // as the one to their left or above (`floor(q) == e` exactly when
-                    // `e <= q < e + 1`), which is cheaper to check than three floors (a quarter
-                    // of this loop), and keeps each voxel about once in `ends`, not once a row.
-                    let q = [0, 1, 2].map(|a| (ray.origin[a] + seg.end * ray.dir[a]) * inv_r);
-                    let holds = |e: &[f64; 3]| (0..3).all(|a| q[a] >= e[a] && q[a] < e[a] + 1.0);
-                    if holds(&last_end) {
-                        above[u] = last_end;
-                    } else if holds(&above[u]) {
-                        last_end = above[u];
-                    } else {
-                        let end = VoxelKey([floor_i32(q[0]), floor_i32(q[1]), floor_i32(q[2])]);
-                        last_end = end.0.map(|k| k as f64);
-                        above[u] = last_end;
-                        ends.push(end);
-                    }
-                }
-            }
-        };
         // `BLOCK` rows at a time, so each task also makes its row of blocks while the rows are
         // in cache (as a separate pass it cost as much as a tenth of the setup): two rows of
         // 2 x 2 blocks first (in a buffer of the task's), then the row of 4 x 4 ones.
@@ -388,11 +381,15 @@ impl Segments {
             .zip(blocks.cells.par_chunks_mut(blocks.width))
             .enumerate()
             .map_init(
-                || (Vec::new(), vec![[f64::NAN; 3]; width]),
-                |(pairs, above), (chunk, (pixels, block_row))| {
+                || (Vec::new(), S::default()),
+                |(pairs, scratch), (chunk, (pixels, block_row))| {
                     let mut ends = Vec::new();
                     for (dv, p) in pixels.chunks_mut(width).enumerate() {
-                        fill_row(BLOCK * chunk + dv, p, &mut ends, above);
+                        // No segment unless the row's filler gives one (a fill the compiler
+                        // vectorises, where filling the gaps between valid pixels took
+                        // bookkeeping per pixel).
+                        p.fill(PixelDepths::NONE);
+                        fill_row(BLOCK * chunk + dv, p, &mut ends, scratch);
                     }
                     // (The last chunk may have fewer rows: a missing row pairs with its
                     // neighbour, as in `reduce_rows`.)
@@ -479,6 +476,27 @@ fn reduce_rows<T: Copy + Into<Bounds>>(upper: &[T], lower: &[T], out: &mut [Boun
     for (x, cell) in out.iter_mut().enumerate() {
         let x1 = (2 * x + 1).min(w - 1);
         *cell = b(upper, 2 * x).union(b(upper, x1)).union(b(lower, 2 * x)).union(b(lower, x1));
+    }
+}
+
+/// Adds to `ends` the voxel holding a segment end at `q` (in voxel units), unless it is
+/// `last` (the end voxel of the pixel to the left) or `above` (of the same column in an earlier
+/// row), and makes it both. Neighbouring pixels mostly end in the same voxel as the one to
+/// their left or above (`floor(q) == e` exactly when `e <= q < e + 1`), which is cheaper to
+/// check than three floors (a quarter of the setup's loop), and keeps each voxel about once in
+/// `ends`, not once a row. NaN in `last` or `above` means none.
+#[inline(always)]
+fn note_end(q: [f64; 3], last: &mut [f64; 3], above: &mut [f64; 3], ends: &mut Vec<VoxelKey>) {
+    let holds = |e: &[f64; 3]| (0..3).all(|a| q[a] >= e[a] && q[a] < e[a] + 1.0);
+    if holds(last) {
+        *above = *last;
+    } else if holds(above) {
+        *last = *above;
+    } else {
+        let end = VoxelKey([floor_i32(q[0]), floor_i32(q[1]), floor_i32(q[2])]);
+        *last = end.0.map(|k| k as f64);
+        *above = *last;
+        ends.push(end);
     }
 }
 
@@ -582,6 +600,12 @@ impl Box3 {
     fn within_one_brick(&self) -> bool {
         (0..3).all(|a| self.hi[a] - self.lo[a] <= BRICK_EDGE)
     }
+
+    /// The bricks of a brick-aligned box.
+    fn bricks(&self) -> impl Iterator<Item = BrickKey> + '_ {
+        let range = |a: usize| self.lo[a] / BRICK_EDGE..self.hi[a] / BRICK_EDGE;
+        range(2).flat_map(move |z| range(1).flat_map(move |y| range(0).map(move |x| BrickKey([x, y, z]))))
+    }
 }
 
 /// Indices `i + 3 j + 9 k` (`i`, `j`, `k` in {0, 1}, in octant order) in the 3 x 3 x 3 corner
@@ -655,6 +679,30 @@ impl<'a> View<'a> {
         }
     }
 
+    /// The view of `rays` over the filled segments `seg`, looking only at boxes in `keep`, and
+    /// the box to split ([`View::root_box`]); `None` if no pixel has a segment.
+    fn over(
+        rays: &FrameRays,
+        seg: &'a Segments,
+        limits: &RayLimits,
+        resolution: f64,
+        keep: Option<&Aabb>,
+    ) -> Option<(Self, Box3)> {
+        let deepest = seg.deepest()?;
+        let mut view = View::new(rays, seg, resolution);
+        view.keep = keep.map(|k| {
+            let (lo, hi) = box_keys(k, resolution);
+            Box3 { lo, hi: hi.map(|h| h + 1) }
+        });
+        let root = view.root_box(deepest as f64, limits);
+        Some((view, root))
+    }
+
+    /// Whether box `b` lies wholly outside [`View::keep`].
+    fn outside_keep(&self, b: &Box3) -> bool {
+        self.keep.as_ref().is_some_and(|k| (0..3).any(|a| b.hi[a] <= k.lo[a] || b.lo[a] >= k.hi[a]))
+    }
+
     /// A brick-aligned box holding every segment: the box around the camera and the image
     /// corners at the deepest segment end (the view frustum), cut to the bounds.
     fn root_box(&self, deepest: f64, limits: &RayLimits) -> Box3 {
@@ -687,21 +735,13 @@ impl<'a> View<'a> {
         crossed: &mut Vec<(BrickKey, SlotMask)>,
         undecided: &mut Vec<(BrickKey, Footprint)>,
     ) {
-        if self.keep.as_ref().is_some_and(|k| (0..3).any(|a| b.hi[a] <= k.lo[a] || b.lo[a] >= k.hi[a])) {
+        if self.outside_keep(&b) {
             return;
         }
-        let (seen, footprint) = self.classify(&b);
+        let (seen, footprint) = self.judge(self.corners(&b).iter(), false);
         match seen {
             Seen::None => {}
-            Seen::All => {
-                for z in b.lo[2] / BRICK_EDGE..b.hi[2] / BRICK_EDGE {
-                    for y in b.lo[1] / BRICK_EDGE..b.hi[1] / BRICK_EDGE {
-                        for x in b.lo[0] / BRICK_EDGE..b.hi[0] / BRICK_EDGE {
-                            crossed.push((BrickKey([x, y, z]), [u64::MAX; 8]));
-                        }
-                    }
-                }
-            }
+            Seen::All => crossed.extend(b.bricks().map(|k| (k, [u64::MAX; 8]))),
             Seen::Some if b.within_one_brick() => {
                 undecided.push((VoxelKey(b.lo).brick(), footprint.expect("a seen box has a footprint")))
             }
@@ -757,7 +797,11 @@ impl<'a> View<'a> {
 
     /// Camera-frame position of grid corner `key`.
     fn corner_at(&self, key: [i32; 3]) -> [f64; 3] {
-        let [x, y, z] = key.map(|k| k as f64);
+        self.point_at(key.map(|k| k as f64))
+    }
+
+    /// Camera-frame position of the point at `[x, y, z]` in voxel units.
+    fn point_at(&self, [x, y, z]: [f64; 3]) -> [f64; 3] {
         let p = |k: usize| self.base[k] + x * self.step[0][k] + y * self.step[1][k] + z * self.step[2][k];
         [p(0), p(1), p(2)]
     }
@@ -769,16 +813,15 @@ impl<'a> View<'a> {
         Corner { x, y, z, u: self.fx * x * inv_z + self.cx, v: self.fy * y * inv_z + self.cy }
     }
 
-    /// Classifies a box by projecting its corners and reading the depth pyramid; also gives
-    /// the rectangle of pixels whose rays can meet it.
-    fn classify(&self, b: &Box3) -> (Seen, Option<Footprint>) {
-        let corners: [Corner; 8] = std::array::from_fn(|i| {
+    /// The eight corners of box `b`.
+    fn corners(&self, b: &Box3) -> [Corner; 8] {
+        std::array::from_fn(|i| {
             self.corner(self.corner_at(std::array::from_fn(|a| if i >> a & 1 == 1 { b.hi[a] } else { b.lo[a] })))
-        });
-        self.judge(corners.iter(), false)
+        })
     }
 
-    /// [`View::classify`] for the box with these eight corners; `known_dense` when the box is
+    /// Classifies the box with these eight corners by projecting them and reading the depth
+    /// pyramid; also gives the rectangle of pixels whose rays can meet it. `known_dense` when the box is
     /// known to lie within the dense range (inside a brick found dense), which skips that test.
     #[inline]
     fn judge<'c>(
@@ -804,14 +847,8 @@ impl<'a> View<'a> {
             inside_image = u_min >= 0.0 && u_max <= self.u_last && v_min >= 0.0 && v_max <= self.v_last;
         } else {
             // Reaching behind the camera plane: any pixel may see it, unless it lies wholly
-            // outside one of the frustum's side planes through the camera, fx x + cx z = 0
-            // (u = 0), fx x + (cx - u_last) z = 0 (u = u_last), and the same for rows.
-            let outside = |f: &dyn Fn(&Corner) -> f64| corners.clone().all(|c| f(c) < 0.0);
-            if outside(&|c| self.fx * c.x + self.cx * c.z)
-                || outside(&|c| -(self.fx * c.x + (self.cx - self.u_last) * c.z))
-                || outside(&|c| self.fy * c.y + self.cy * c.z)
-                || outside(&|c| -(self.fy * c.y + (self.cy - self.v_last) * c.z))
-            {
+            // outside the frustum.
+            if self.outside_frustum(corners.clone()) {
                 return (Seen::None, None);
             }
             (u_min, u_max, v_min, v_max) = (0.0, self.u_last, 0.0, self.v_last);
@@ -829,6 +866,17 @@ impl<'a> View<'a> {
         let dense = known_dense || corners.map(|c| c.x * c.x + c.y * c.y + c.z * c.z).all(|d2| d2 <= self.dense_range2);
         let seen = if inside_image && through && dense { Seen::All } else { Seen::Some };
         (seen, Some(Footprint { rect, z_near: z_near32, z_far: z_far32, dense }))
+    }
+
+    /// Whether a box with these corners lies wholly outside one of the view frustum's side
+    /// planes through the camera, fx x + cx z = 0 (u = 0), fx x + (cx - u_last) z = 0
+    /// (u = u_last), and the same for rows.
+    fn outside_frustum<'c>(&self, corners: impl Iterator<Item = &'c Corner> + Clone) -> bool {
+        let outside = |f: &dyn Fn(&Corner) -> f64| corners.clone().all(|c| f(c) < 0.0);
+        outside(&|c| self.fx * c.x + self.cx * c.z)
+            || outside(&|c| -(self.fx * c.x + (self.cx - self.u_last) * c.z))
+            || outside(&|c| self.fy * c.y + self.cy * c.z)
+            || outside(&|c| -(self.fy * c.y + (self.cy - self.v_last) * c.z))
     }
 
     /// The reciprocals of the world directions per metre of camera depth of pixels `u..u + N`
@@ -902,7 +950,7 @@ impl<'a> View<'a> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use std::collections::BTreeSet;
 
     use super::*;
@@ -958,7 +1006,7 @@ mod tests {
     }
 
     /// A random small camera somewhere in a box, looking at random surfaces, with holes.
-    fn random_frame(rng: &mut Rng) -> Frame {
+    pub(super) fn random_frame(rng: &mut Rng) -> Frame {
         let (w, h) = (rng.range(8.0, 48.0) as u32, rng.range(6.0, 36.0) as u32);
         let f = rng.range(15.0, 60.0);
         let fy = if rng.uniform() < 0.3 { -f * rng.range(0.9, 1.1) } else { f * rng.range(0.9, 1.1) };
@@ -1004,7 +1052,7 @@ mod tests {
         (set, ends)
     }
 
-    fn projected(frame: &Frame, limits: &RayLimits, r: f64) -> (BTreeSet<VoxelKey>, BTreeSet<VoxelKey>) {
+    pub(super) fn projected(frame: &Frame, limits: &RayLimits, r: f64) -> (BTreeSet<VoxelKey>, BTreeSet<VoxelKey>) {
         let c = Projector::default().crossed_voxels(frame, limits, r, None);
         let mut bricks = BTreeSet::new();
         let set = c

@@ -340,6 +340,9 @@ def test_build_options_mean_what_the_flags_mean(tmp_path, monkeypatch):
     occ = clamped.voxels()[1]
     assert occ.min() >= 0.3 - 1e-6 and occ.max() <= 0.8 + 1e-6
     assert plain.voxels()[1].max() > 0.9
+    # The projective model is its own map of the same scene.
+    centres = mrfmap.build_dataset(dataset, resolution=0.2, marking="centres")
+    assert len(centres) > 0 and (centres.voxels()[1] > 0.5).any()
     # A map over the memory limit is refused before any work, as `mrfmap build` refuses it
     # (about 3 GiB at 0.01 m here).
     monkeypatch.setenv("MRFMAP_MAX_MEMORY", "32M")

@@ -42,7 +42,8 @@ pub struct Args {
     /// CRM only: particles per voxel.
     #[arg(long, default_value_t = 101)]
     particles: usize,
-    /// Log-odds only: find crossed voxels by projection or by walking every ray.
+    /// Log-odds only: find crossed voxels by projection or by walking every ray, or decide
+    /// them by their centres (`build --marking`).
     #[arg(long, default_value = "project", value_parser = super::choice::<Marking>())]
     marking: Marking,
     #[command(flatten)]

@@ -78,7 +78,9 @@ pub struct MapOptions {
     #[arg(long, default_value_t = BuildOptions::default().particles as u16, value_parser = clap::value_parser!(u16).range(2..))]
     pub particles: u16,
     /// Log-odds: find the voxels a depth image's rays cross by projecting boxes of voxels
-    /// into the image (project, faster) or by walking every ray (walk); same map.
+    /// into the image (project, faster) or by walking every ray (walk), the same map; or
+    /// decide each voxel by its centre against its nearest pixel's depth (centres, faster
+    /// again; not OctoMap's voxels: docs/ALGORITHMS.md 5.1).
     #[arg(long, default_value = "project", value_parser = super::choice::<Marking>())]
     pub marking: Marking,
     /// Log-odds: clamping thresholds as probabilities, "MIN,MAX" (default: OctoMap's

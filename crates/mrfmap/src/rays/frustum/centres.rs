@@ -209,9 +209,9 @@ impl View<'_> {
     /// camera (the ray through the centre, for the pixel's), `r / 2 c_z / max |o_a|`.
     fn centres_in_brick(&self, brick: BrickKey, rect: &Rect) -> (SlotMask, SlotMask) {
         let lo = brick.voxel(0).0;
-        let r = self.resolution;
+        let half_r = 0.5 * self.resolution;
         let first = self.point_at(lo.map(|k| k as f64 + 0.5));
-        let offset = |a: usize, k: i32| (k as f64 + 0.5) * r - self.origin[a];
+        let offset = |a: usize, k: i32| ((k as f64 + 0.5) * self.resolution - self.origin[a]).abs();
         let pixels = &self.seg.pixels;
         let (u_lo, u_hi) = (rect.u0 as f64 - 0.5, rect.u1 as f64 + 0.5);
         let (v_lo, v_hi) = (rect.v0 as f64 - 0.5, rect.v1 as f64 + 0.5);
@@ -220,25 +220,25 @@ impl View<'_> {
             for y in 0..BRICK_EDGE {
                 let row: [f64; 3] =
                     std::array::from_fn(|c| first[c] + y as f64 * self.step[1][c] + z as f64 * self.step[2][c]);
-                let oyz = offset(1, lo[1] + y).abs().max(offset(2, lo[2] + z).abs());
+                let oyz = offset(1, lo[1] + y).max(offset(2, lo[2] + z));
                 let (mut free_bits, mut hit_bits) = (0u64, 0u64);
+                // With no branch but the pixel's read: a centre outside the pixels (or behind
+                // the camera) reads a pixel in `rect` and counts for nothing.
                 for x in 0..BRICK_EDGE {
                     let p: [f64; 3] = std::array::from_fn(|c| row[c] + x as f64 * self.step[0][c]);
-                    if p[2] <= 0.0 {
-                        continue;
-                    }
                     let inv_z = 1.0 / p[2];
                     let (u, v) = (self.fx * p[0] * inv_z + self.cx, self.fy * p[1] * inv_z + self.cy);
-                    if !(u >= u_lo && u < u_hi && v >= v_lo && v < v_hi) {
-                        continue;
-                    }
-                    // (`u + 1/2` truncated is the nearest column: `round` is a libm call.)
-                    let PixelDepths([surface, depth]) =
-                        pixels[(v + 0.5) as usize * self.seg.width + (u + 0.5) as usize];
+                    let inside = p[2] > 0.0 && u >= u_lo && u < u_hi && v >= v_lo && v < v_hi;
+                    // (`u + 1/2` truncated is the nearest column: `round` is a libm call. A NaN
+                    // casts to 0.)
+                    let nearest = |x: f64, lo: usize, hi: usize| ((x + 0.5).max(0.0) as u32 as usize).clamp(lo, hi);
+                    let (u, v) = (nearest(u, rect.u0, rect.u1), nearest(v, rect.v0, rect.v1));
+                    let PixelDepths([surface, depth]) = pixels[v * self.seg.width + u];
                     let (cz, depth) = (p[2], depth as f64);
-                    free_bits |= ((cz < depth) as u64) << x;
-                    let chord = 0.5 * r * cz / offset(0, lo[0] + x).abs().max(oyz);
-                    hit_bits |= ((surface == SURFACE && (depth - cz).abs() <= chord) as u64) << x;
+                    free_bits |= ((inside && cz < depth) as u64) << x;
+                    // `|depth - cz| <= r / 2 cz / max |o_a|`, multiplied out.
+                    let chord = (depth - cz).abs() * offset(0, lo[0] + x).max(oyz) <= half_r * cz;
+                    hit_bits |= ((inside && surface == SURFACE && chord) as u64) << x;
                 }
                 // Slot `x + 8 y + 64 z`: a row of eight is one byte of a mask.
                 let slot = VoxelKey([lo[0], lo[1] + y, lo[2] + z]).slot();

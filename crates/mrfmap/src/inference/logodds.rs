@@ -13,6 +13,7 @@
 //! for any thread count. It is meant for the papers' experiments, not for speed.
 
 use crate::map::EngineKind;
+use std::cell::Cell;
 use std::collections::BTreeMap;
 use std::ops::ControlFlow;
 use std::path::Path;
@@ -346,7 +347,8 @@ impl Engine for LogOddsEngine {
     fn save_map(&self, path: &Path, params: &BTreeMap<String, String>) -> Result<SavedMap> {
         let mut meta = self.map_params();
         meta.params.extend(params.clone());
-        let occupied = meta.save_converted(&self.grid, |l| map_voxel(*l), path)?;
+        let memo = Memo::default();
+        let occupied = meta.save_converted(&self.grid, |l| memo.map_voxel(*l), path)?;
         Ok(SavedMap { voxels: self.grid.len(), occupied })
     }
 }
@@ -374,6 +376,36 @@ impl LogOddsEngine {
 /// A map voxel of a stored log-odds value.
 fn map_voxel(l: f32) -> MapVoxel {
     MapVoxel { occupancy: sigmoid(l as f64) as f32, variance: 0.0 }
+}
+
+/// [`map_voxel`] remembered for the last values seen, by their bits: a map's log-odds are sums
+/// of a few increments, clamped, so a handful of values cover most voxels, and the `exp` per
+/// voxel was a quarter of saving a map (a tenth of a short build's whole process). The same
+/// values bit for bit.
+struct Memo {
+    slots: [Cell<(u32, f32)>; 256],
+}
+
+impl Default for Memo {
+    fn default() -> Self {
+        // (Every slot starts as the value 0, probability 1/2, exactly.)
+        Memo { slots: std::array::from_fn(|_| Cell::new((0f32.to_bits(), map_voxel(0.0).occupancy))) }
+    }
+}
+
+impl Memo {
+    fn map_voxel(&self, l: f32) -> MapVoxel {
+        let bits = l.to_bits();
+        let slot = &self.slots[(bits.wrapping_mul(0x9E37_79B1) >> 24) as usize];
+        match slot.get() {
+            (b, p) if b == bits => MapVoxel { occupancy: p, variance: 0.0 },
+            _ => {
+                let v = map_voxel(l);
+                slot.set((bits, v.occupancy));
+                v
+            }
+        }
+    }
 }
 
 /// Free and occupied voxels of one brick in one scan.

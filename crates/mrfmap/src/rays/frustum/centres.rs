@@ -45,12 +45,14 @@ impl Projector {
     /// let pose = look_at(Vector3::new(0.01, 0.01, 0.01), Vector3::new(1.0, 0.01, 0.01)).unwrap();
     /// let frame = Frame { index: 0, timestamp: 0.0, depth, pose, camera, noise: None };
     /// let c = Projector::default().centre_voxels(&frame, &RayLimits::default(), 0.05, None);
-    /// // The wall at x = 1.01 is in voxel column 20; the voxels straight ahead are free.
+    /// // The wall at x = 1.01 is in voxel column 20, whose centre lies behind it.
     /// assert!(!c.ends.is_empty() && c.ends.iter().all(|k| k.0[0] == 20));
     /// let free: Vec<i32> = c.crossed.iter()
     ///     .flat_map(|(b, m)| mrfmap::map::mask_slots(m).map(move |s| b.voxel(s)))
     ///     .filter(|k| k.0[1] == 0 && k.0[2] == 0).map(|k| k.0[0]).collect();
-    /// assert_eq!(free.iter().min().zip(free.iter().max()), Some((&0, &20)));
+    /// // The voxels straight ahead are free up to the wall, but for the camera's own: its
+    /// // centre, 1.5 cm ahead and to the side, projects outside the image.
+    /// assert_eq!(free.iter().min().zip(free.iter().max()), Some((&1, &19)));
     /// ```
     pub fn centre_voxels(
         &mut self,

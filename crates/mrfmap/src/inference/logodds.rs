@@ -142,11 +142,11 @@ pub enum Marking {
     #[default]
     Project,
     /// Not OctoMap's voxels: a voxel is free when its centre lies in front of the depth at
-    /// the pixel it projects to, occupied when it holds a surface point
-    /// ([`centre_voxels`]), as voxblox's and wavemap's projective integrators decide. Voxels
-    /// that rays only clip are left out, and far voxels smaller than a pixel are all cleared,
-    /// not only those a ray hits. About twice as fast as `Project`; RESULTS.md compares the
-    /// maps' held-out accuracy.
+    /// the pixel it projects to, occupied when that pixel's surface lies on the voxel's chord
+    /// through its centre ([`centre_voxels`]), as voxblox's and wavemap's projective
+    /// integrators decide. Voxels that rays only clip are left out, and far voxels smaller
+    /// than a pixel are all cleared, not only those a ray hits. 2-4x as fast as `Project`
+    /// (BENCHMARKS.md, session 28); RESULTS.md compares the maps' held-out accuracy.
     ///
     /// [`centre_voxels`]: crate::rays::Projector::centre_voxels
     Centres,

@@ -369,6 +369,11 @@ impl LogOddsEngine {
         for (k, v) in params {
             map.params.insert(k.into(), v.to_string());
         }
+        if p.marking == Marking::Centres {
+            // A different model of space: the file says so (OctoMap's markings agree, and say
+            // nothing, as before).
+            map.params.insert("marking".into(), crate::Choice::name(p.marking).into());
+        }
         map
     }
 }
@@ -551,6 +556,28 @@ mod tests {
         assert_eq!(*g.get(VoxelKey([3, 0, 0])).unwrap(), logit(0.1192) as f32);
     }
 
+    /// The projective model marks the wall's voxel and clears the voxels before it, once a
+    /// frame each, and its maps say which model made them.
+    #[test]
+    fn centres_marks_the_wall_and_says_so() {
+        let frame = wall_frame(1.0, 32, 24);
+        let params = LogOddsParams { marking: Marking::Centres, ..Default::default() };
+        let mut e = LogOddsEngine::new(0.1, RayLimits::default(), params).unwrap();
+        e.integrate(&frame).unwrap();
+        let (hit, miss) = (logit(0.7) as f32, logit(0.4) as f32);
+        // Camera at x = 0.013, wall at x = 1.013: in voxel 10, whose centre (1.05) is 3.7 cm
+        // behind it, on the voxel's chord.
+        let grid = e.log_odds();
+        assert_eq!(grid.get(VoxelKey([10, 0, 0])), Some(&hit));
+        for i in 1..10 {
+            assert_eq!(grid.get(VoxelKey([i, 0, 0])), Some(&miss), "voxel {i}");
+        }
+        assert!(grid.iter().all(|(k, _)| k.0[0] <= 10), "nothing behind the wall");
+        assert_eq!(e.map().params.get("marking").map(String::as_str), Some("centres"));
+        let exact = LogOddsEngine::new(0.1, RayLimits::default(), LogOddsParams::default()).unwrap();
+        assert_eq!(exact.map().params.get("marking"), None);
+    }
+
     #[test]
     fn occupied_wins_within_a_scan_and_max_range_cuts() {
         // Two rays in one scan: one ends in voxel 5, the other passes through it.
@@ -621,10 +648,15 @@ mod tests {
             }
             f
         };
-        for model in [SensorModel::OCTOMAP, SensorModel::CRM_PAPER] {
+        let cases = [
+            (SensorModel::OCTOMAP, Marking::Project),
+            (SensorModel::CRM_PAPER, Marking::Project),
+            (SensorModel::OCTOMAP, Marking::Centres),
+        ];
+        for (model, marking) in cases {
             let run = |threads| {
                 let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
-                let params = LogOddsParams { model, ..Default::default() };
+                let params = LogOddsParams { model, marking, ..Default::default() };
                 let mut e = LogOddsEngine::new(0.02, RayLimits::default(), params).unwrap();
                 pool.install(|| {
                     e.integrate(&frame).unwrap();
@@ -636,8 +668,8 @@ mod tests {
             };
             let one = run(1);
             assert!(one.len() > 1000);
-            assert_eq!(one, run(2), "{model:?}");
-            assert_eq!(one, run(3), "{model:?}");
+            assert_eq!(one, run(2), "{model:?} {marking:?}");
+            assert_eq!(one, run(3), "{model:?} {marking:?}");
         }
     }
 }

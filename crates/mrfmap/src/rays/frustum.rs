@@ -336,10 +336,7 @@ impl Segments {
     /// measured surfaces.
     fn fill(&mut self, rays: &FrameRays, limits: &RayLimits, resolution: f64) -> Vec<VoxelKey> {
         let inv_r = 1.0 / resolution;
-        let width = rays.size().0;
-        self.fill_with(rays.size(), |v, pixels, ends, above: &mut Vec<[f64; 3]>| {
-            // (`above[u]`: NaN for none, which every comparison fails.)
-            above.resize(width, [f64::NAN; 3]);
+        self.fill_with(rays.size(), |v, pixels, ends, above| {
             let mut last_end = [f64::NAN; 3]; // no end yet
             for ray in rays.row(v as u32) {
                 let u = ray.u as usize;
@@ -354,14 +351,12 @@ impl Segments {
     }
 
     /// Fills the buffers for an image of `width x height` pixels, row `v` by
-    /// `fill_row(v, pixels, ends, scratch)`: it sets the segments of the row's `pixels` (which
-    /// start as [`PixelDepths::NONE`]) and adds the voxels of their surface ends to `ends`,
-    /// with `scratch` kept from row to row (each voxel need only be there once, and
-    /// neighbouring pixels mostly end in the same voxel). Returns the ends.
-    fn fill_with<S, F>(&mut self, (width, height): (usize, usize), fill_row: F) -> Vec<VoxelKey>
+    /// `fill_row(v, pixels, ends, above)`: it sets the segments of the row's `pixels` (which
+    /// start as [`PixelDepths::NONE`]) and adds the voxels of their surface ends to `ends`
+    /// with [`note_end`] (`above[u]` is column `u`'s, kept from row to row). Returns the ends.
+    fn fill_with<F>(&mut self, (width, height): (usize, usize), fill_row: F) -> Vec<VoxelKey>
     where
-        S: Default + Send,
-        F: Fn(usize, &mut [PixelDepths], &mut Vec<VoxelKey>, &mut S) + Sync,
+        F: Fn(usize, &mut [PixelDepths], &mut Vec<VoxelKey>, &mut [[f64; 3]]) + Sync,
     {
         (self.width, self.height) = (width, height);
         // Every pixel is written below, so only a change of size needs new buffers.
@@ -381,15 +376,16 @@ impl Segments {
             .zip(blocks.cells.par_chunks_mut(blocks.width))
             .enumerate()
             .map_init(
-                || (Vec::new(), S::default()),
-                |(pairs, scratch), (chunk, (pixels, block_row))| {
+                // (`above[u]`: NaN for none, which every comparison fails.)
+                || (Vec::new(), vec![[f64::NAN; 3]; width]),
+                |(pairs, above), (chunk, (pixels, block_row))| {
                     let mut ends = Vec::new();
                     for (dv, p) in pixels.chunks_mut(width).enumerate() {
                         // No segment unless the row's filler gives one (a fill the compiler
                         // vectorises, where filling the gaps between valid pixels took
                         // bookkeeping per pixel).
                         p.fill(PixelDepths::NONE);
-                        fill_row(BLOCK * chunk + dv, p, &mut ends, scratch);
+                        fill_row(BLOCK * chunk + dv, p, &mut ends, above);
                     }
                     // (The last chunk may have fewer rows: a missing row pairs with its
                     // neighbour, as in `reduce_rows`.)

@@ -17,7 +17,7 @@ use rayon::prelude::*;
 
 use super::{Box3, Corner, PixelDepths, Projector, Rect, Seen, Segments, View};
 use crate::frames::Frame;
-use crate::map::{Aabb, BRICK_EDGE, BRICK_VOXELS, BrickKey, SlotMask, VoxelKey, box_keys, mask_set, mask_slots};
+use crate::map::{Aabb, BrickKey, SlotMask, VoxelKey, box_keys, mask_slots};
 use crate::rays::{CrossedVoxels, FrameRays, RayLimits};
 
 /// A pixel's segment start in this model, which the pyramid does not read (free space starts
@@ -110,7 +110,8 @@ fn fill_centres(seg: &mut Segments, rays: &FrameRays, limits: &RayLimits) {
     let max_range = limits.max_range.map_or(f32::INFINITY, |m| m as f32);
     let max_range2 = max_range * max_range;
     let xs: Vec<f32> = camera.xs.iter().map(|&x| x as f32).collect();
-    let ends = seg.fill_with(rays.size(), |v, pixels, _, _: &mut ()| {
+    // (No ends: this model finds its surfaces per voxel.)
+    let ends = seg.fill_with(rays.size(), |v, pixels, _, _| {
         let y = camera.ys[v];
         let y2 = (y * y + 1.0) as f32;
         // The reading or the cut are computed both and one is picked, with no branch, so that
@@ -131,15 +132,12 @@ fn fill_centres(seg: &mut Segments, rays: &FrameRays, limits: &RayLimits) {
 
 /// The slots of `brick` inside the box of voxels `b`.
 fn box_mask(brick: BrickKey, b: &Box3) -> SlotMask {
-    let lo = brick.voxel(0).0;
-    if (0..3).all(|a| b.lo[a] <= lo[a] && lo[a] + BRICK_EDGE <= b.hi[a]) {
-        return [u64::MAX; 8];
-    }
+    let whole = Box3::of_brick(brick);
+    let lo: [i32; 3] = std::array::from_fn(|a| whole.lo[a].max(b.lo[a]));
+    let hi: [i32; 3] = std::array::from_fn(|a| whole.hi[a].min(b.hi[a]));
     let mut mask = [0; 8];
-    for slot in 0..BRICK_VOXELS {
-        if (0..3).all(|a| (b.lo[a]..b.hi[a]).contains(&brick.voxel(slot).0[a])) {
-            mask_set(&mut mask, slot);
-        }
+    if (0..3).all(|a| lo[a] < hi[a]) {
+        for_each_row(&Box3 { lo, hi }, |slot, bits| mask[slot / 64] |= bits << (slot % 64));
     }
     mask
 }

@@ -264,7 +264,7 @@ impl MrfEngine {
         let bricks: FxHashSet<BrickKey> = self.log[start..].iter().map(|x| x.1).collect();
         let to_camera = kf.to_camera();
         for &b in &bricks {
-            kf.for_tiles_reaching(&to_camera, b, edge, |t| t.suspect = true);
+            kf.for_tiles_reaching(&to_camera, b, edge, |t, _| t.suspect = true);
         }
         Some(bricks)
     }

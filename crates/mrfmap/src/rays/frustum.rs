@@ -30,7 +30,7 @@ use rayon::prelude::*;
 
 use std::ops::ControlFlow;
 
-use super::{CameraRays, FrameRays, RayLimits, for_each_crossing};
+use super::{CameraRays, FrameRays, PixelRay, RayLimits, for_each_crossing};
 use crate::frames::{Camera, DepthImage, Frame};
 use crate::map::{Aabb, box_keys};
 use crate::map::{BRICK_EDGE, BrickKey, SlotMask, VoxelKey, floor_i32, mask_set};
@@ -338,13 +338,38 @@ impl Segments {
         let inv_r = 1.0 / resolution;
         self.fill_with(rays.size(), |v, pixels, ends, above| {
             let mut last_end = [f64::NAN; 3]; // no end yet
-            for ray in rays.row(v as u32) {
-                let u = ray.u as usize;
-                let Some(seg) = limits.hit_miss_segment(&ray, resolution) else { continue };
-                pixels[u] = PixelDepths([(seg.start * ray.cz) as f32, (seg.end * ray.cz) as f32]);
-                if seg.hits_surface {
-                    let q = [0, 1, 2].map(|a| (ray.origin[a] + seg.end * ray.dir[a]) * inv_r);
+            // A ray's segment as the pixel's depths, with its end (voxel units) if that is a
+            // measured surface.
+            let segment = |ray: &PixelRay| {
+                let seg = limits.hit_miss_segment(ray, resolution)?;
+                let end = seg.hits_surface.then(|| [0, 1, 2].map(|a| (ray.origin[a] + seg.end * ray.dir[a]) * inv_r));
+                Some((PixelDepths([(seg.start * ray.cz) as f32, (seg.end * ray.cz) as f32]), end))
+            };
+            let mut put = |u: usize, (depths, end): (PixelDepths, Option<[f64; 3]>)| {
+                pixels[u] = depths;
+                if let Some(q) = end {
                     note_end(q, &mut last_end, &mut above[u], ends);
+                }
+            };
+            // Without bounds, a reading within the max range is the segment from the camera
+            // to it ([`RayLimits::hit_miss_segment`]): most pixels, computed in lanes (the
+            // per-pixel rays were a third of a projected frame at 0.05 m).
+            let max_range = limits.max_range.unwrap_or(f64::INFINITY);
+            let v = v as u32;
+            let plain = limits.bounds.is_none()
+                && rays.row_plain(v, max_range, inv_r, |u, plain| match plain {
+                    Some((z, end)) => put(u, (PixelDepths([0.0, z]), Some(end))),
+                    None => {
+                        if let Some(s) = rays.ray(u as u32, v).as_ref().and_then(segment) {
+                            put(u, s);
+                        }
+                    }
+                });
+            if !plain {
+                for ray in rays.row(v) {
+                    if let Some(s) = segment(&ray) {
+                        put(ray.u as usize, s);
+                    }
                 }
             }
         })

@@ -223,6 +223,59 @@ impl<'a> FrameRays<'a> {
     }
 }
 
+/// Columns [`FrameRays::row_plain`] computes at a time (its buffers live on the stack).
+const PLAIN_COLUMNS: usize = 64;
+
+impl FrameRays<'_> {
+    /// Row `v`'s valid pixels left to right by `visit(u, plain)`: `plain` is the surface's
+    /// camera z-depth and its point multiplied by `scale` where the reading lies within
+    /// `max_range` (infinite for none), `None` for the others (their rays are
+    /// [`FrameRays::ray`]). The plain ones are computed 64 at a time in loops the compiler
+    /// vectorises, the same values bit for bit as from their rays (`range * cz` and
+    /// `(origin + range dir) scale`, without fused operations). Does nothing and returns
+    /// false without cached camera rays ([`FrameRays::with_camera_rays`]).
+    #[inline(always)]
+    pub(crate) fn row_plain(
+        &self,
+        v: u32,
+        max_range: f64,
+        scale: f64,
+        mut visit: impl FnMut(usize, Option<(f32, [f64; 3])>),
+    ) -> bool {
+        let Some(c) = self.camera_rays else { return false };
+        let (norms, invs) = c.row_norms(v);
+        let (y, depth, rotation, origin) = (c.ys[v as usize], self.frame.depth.row(v), &self.rotation, self.origin);
+        let mut range = [0.0f64; PLAIN_COLUMNS];
+        let mut z_end = [0.0f32; PLAIN_COLUMNS];
+        let mut end = [[0.0f64; PLAIN_COLUMNS]; 3];
+        for start in (0..depth.len()).step_by(PLAIN_COLUMNS) {
+            let stop = (start + PLAIN_COLUMNS).min(depth.len());
+            let (zs, xs, norms, invs) =
+                (&depth[start..stop], &c.xs[start..stop], &norms[start..stop], &invs[start..stop]);
+            // Every column, valid or not (the invalid ones' values go unused): no branch.
+            // `rotation * unit` as nalgebra sums it, column by column.
+            for (k, ((&z, &x), (&norm, &inv))) in zs.iter().zip(xs).zip(norms.iter().zip(invs)).enumerate() {
+                let r = z as f64 * norm;
+                range[k] = r;
+                z_end[k] = (r * inv) as f32;
+                let unit = [x * inv, y * inv, inv];
+                for (a, e) in end.iter_mut().enumerate() {
+                    let d = rotation[(a, 0)] * unit[0] + rotation[(a, 1)] * unit[1] + rotation[(a, 2)] * unit[2];
+                    e[k] = (origin[a] + r * d) * scale;
+                }
+            }
+            for (k, &z) in zs.iter().enumerate() {
+                if !DepthImage::is_valid(z) {
+                    continue;
+                }
+                let plain = range[k] <= max_range;
+                visit(start + k, plain.then(|| (z_end[k], [end[0][k], end[1][k], end[2][k]])));
+            }
+        }
+        true
+    }
+}
+
 /// The rays of one row's valid pixels, left to right ([`FrameRays::row`]). A named iterator
 /// so that its `next` is inlined into the caller's loop: the closure of a `filter_map` was
 /// called once per pixel and returned its 80-byte ray through memory, a third of a projected
@@ -602,6 +655,61 @@ mod tests {
         }
         assert!(n > 2500);
         assert_eq!(cached.ray(64, 0), None, "outside the image");
+    }
+
+    /// `row_plain` visits a row's valid pixels in order, and its plain values are those of
+    /// the pixels' rays bit for bit: over chunk boundaries (a 150-pixel row), invalid depths,
+    /// readings beyond the max range and several poses.
+    #[test]
+    fn plain_rows_are_their_rays_bit_for_bit() {
+        use crate::frames::{DepthImage, look_at};
+        let mut rng = crate::random::Rng::new(3);
+        let camera = Camera::new(130.0, -131.5, 74.5, 19.5, 150, 40, 5000.0).unwrap();
+        let (mut plain_seen, mut others) = (0, 0);
+        for trial in 0..6 {
+            let mut depth = DepthImage::new(150, 40);
+            for v in 0..40 {
+                for u in 0..150 {
+                    let z = match (rng.uniform() * 20.0) as u32 {
+                        0 => 0.0,
+                        1 => f32::NAN,
+                        2 => -1.0,
+                        _ => rng.range(0.2, 8.0) as f32,
+                    };
+                    depth.set(u, v, z);
+                }
+            }
+            let eye = [rng.range(-2.0, 2.0), rng.range(-2.0, 2.0), rng.range(-1.0, 1.0)];
+            let pose = look_at(eye.into(), nalgebra::Vector3::new(0.1, 0.2, 0.3)).unwrap();
+            let frame = Frame { index: 0, timestamp: 0.0, depth, pose, camera, noise: None };
+            let mut cache = CameraRays::default();
+            let rays = FrameRays::with_camera_rays(&frame, &mut cache);
+            let (max_range, scale) = ([5.0, f64::INFINITY][trial % 2], rng.range(10.0, 100.0));
+            assert!(!FrameRays::new(&frame).row_plain(0, max_range, scale, |_, _| ()), "no cached camera rays");
+            for v in 0..40 {
+                let mut visited = Vec::new();
+                assert!(rays.row_plain(v, max_range, scale, |u, plain| visited.push((u, plain))));
+                let want: Vec<PixelRay> = rays.row(v).collect();
+                assert_eq!(visited.len(), want.len(), "row {v}");
+                for ((u, plain), ray) in visited.into_iter().zip(want) {
+                    assert_eq!(u, ray.u as usize);
+                    match plain {
+                        Some((z, end)) => {
+                            assert!(ray.range <= max_range);
+                            assert_eq!(z.to_bits(), ((ray.range * ray.cz) as f32).to_bits());
+                            let q = [0, 1, 2].map(|a| ((ray.origin[a] + ray.range * ray.dir[a]) * scale).to_bits());
+                            assert_eq!(end.map(f64::to_bits), q, "pixel {u}, {v}");
+                            plain_seen += 1;
+                        }
+                        None => {
+                            assert!(ray.range > max_range);
+                            others += 1;
+                        }
+                    }
+                }
+            }
+        }
+        assert!(plain_seen > 10_000 && others > 1_000, "{plain_seen} plain, {others} beyond the max range");
     }
 
     #[test]

@@ -324,8 +324,8 @@ impl MrfEngine {
 
     /// Marks stale every tile whose rays may cross one of the new `bricks`: the brick's
     /// corners projected into the keyframe's image overlap the tile, and the brick's nearest
-    /// corner is no farther than the tile's rays reach (and no nearer than its
-    /// [`Tile::z_near`]). Tiles never traced are stale already.
+    /// corner is no farther than the tile's rays reach; the tile's near bound comes down to
+    /// that corner if it lay beyond. Tiles never traced are stale already.
     pub(super) fn mark_tiles_reaching(&mut self, bricks: &[BrickKey]) {
         if bricks.is_empty() {
             return;

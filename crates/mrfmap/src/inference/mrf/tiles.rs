@@ -154,9 +154,10 @@ pub(super) struct Tile {
     pub(super) z_max: f32,
     /// A camera z (m) before which none of its rays meets an allocated brick: a voxel short
     /// of the nearest one its last trace met, lowered since to the nearest corner of each
-    /// brick allocated that may reach it (0 before a trace). A trace starts its rays' walks
-    /// there: at 0.02 m a ray crossed about 39 bricks, most of them empty space in front of
-    /// the band of allocated bricks around the surfaces.
+    /// brick allocated that may reach it; before its first trace, a voxel short of the nearest
+    /// corner of the bricks allocated then that may reach it ([`Keyframe::bound_tiles`]). A
+    /// trace starts its rays' walks there: at 0.02 m a ray crossed about 39 bricks, most of
+    /// them empty space in front of the band of allocated bricks around the surfaces.
     pub(super) z_near: f32,
     /// How far (in marginal) its last update fell short of what its rays computed, where
     /// damping held a message back: the largest move the rest of the step would make.
@@ -243,6 +244,13 @@ impl Keyframe {
     /// projected corners, a pixel wider) overlaps the tile, and its nearest point is no
     /// farther than the tile's rays reach. A ray that crosses the brick passes through its
     /// projection, at a depth at least the brick's smallest, so no such tile is missed.
+    ///
+    /// A brick that reaches behind the camera plane projects without bound, but not
+    /// everywhere: its points in front of the camera lie in the box around its corners in
+    /// camera axes, with `z` up to the largest corner's, so along an axis where that box lies
+    /// wholly on one side of the optical axis the projection is bounded on that side's inner
+    /// edge (`x / z >= x_min / z_max` for `x_min > 0`). The floor under a camera looking ahead
+    /// projects below the image instead of onto all of it.
     pub(super) fn for_tiles_reaching(
         &mut self,
         to_camera: &(nalgebra::Matrix3<f64>, [f64; 3]),
@@ -255,12 +263,18 @@ impl Keyframe {
         let (w, h) = (camera.width as f64, camera.height as f64);
         let (mut z_min, mut z_max) = (f64::INFINITY, f64::NEG_INFINITY);
         let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+        // The box around the corners in camera x and y.
+        let (mut axis_lo, mut axis_hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
         let mut behind = false;
         for c in 0..8 {
             let p = nalgebra::Vector3::from_fn(|a, _| (b.0[a] as f64 + (c >> a & 1) as f64) * edge - origin[a]);
             let q = rotation * p;
             z_min = z_min.min(q.z);
             z_max = z_max.max(q.z);
+            for a in 0..2 {
+                axis_lo[a] = axis_lo[a].min(q[a]);
+                axis_hi[a] = axis_hi[a].max(q[a]);
+            }
             match camera.project(&q) {
                 Some((u, v)) if q.z > 1e-9 => {
                     lo = [lo[0].min(u - 1.0), lo[1].min(v - 1.0)];
@@ -276,8 +290,18 @@ impl Keyframe {
             return;
         }
         if behind {
-            // A corner at or behind the camera plane: the projection is unbounded.
-            (lo, hi) = ([0.0, 0.0], [w, h]);
+            // A corner at or behind the camera plane: per image axis, the range of `x / z`
+            // over the box's points in front of the camera, then of the pixel coordinate.
+            for (a, (f, c)) in [(camera.fx, camera.cx), (camera.fy, camera.cy)].into_iter().enumerate() {
+                let (t_lo, t_hi) = match (axis_lo[a] > 0.0, axis_hi[a] < 0.0) {
+                    (true, _) => (axis_lo[a] / z_max, f64::INFINITY),
+                    (_, true) => (f64::NEG_INFINITY, axis_hi[a] / z_max),
+                    _ => (f64::NEG_INFINITY, f64::INFINITY),
+                };
+                // (An infinite end times a focal length keeps its sign's meaning.)
+                let (p, q) = (f * t_lo + c, f * t_hi + c);
+                (lo[a], hi[a]) = (p.min(q) - 1.0, p.max(q) + 1.0);
+            }
         }
         if hi[0] < 0.0 || hi[1] < 0.0 || lo[0] >= w || lo[1] >= h {
             return;
@@ -294,12 +318,27 @@ impl Keyframe {
         }
     }
 
-    /// Forgets every message and marks every tile for tracing.
+    /// Forgets every message and marks every tile for tracing, with no near bound yet
+    /// (nothing known of what its rays may reach).
     pub(super) fn reset_tiles(&mut self) {
         let (w, h) = (self.frame.depth.width(), self.frame.depth.height());
         self.tiles_x = w.div_ceil(TILE);
         let n = (self.tiles_x * h.div_ceil(TILE)) as usize;
-        self.tiles = vec![Tile { stale: true, ..Tile::default() }; n];
+        self.tiles = vec![Tile { stale: true, z_max: f32::INFINITY, z_near: f32::INFINITY, ..Tile::default() }; n];
+    }
+
+    /// Gives tiles just reset ([`Keyframe::reset_tiles`]) their near bound: a voxel (`voxel`
+    /// m) short of the nearest corner of the bricks `allocated` that may reach each. Before it
+    /// a first trace walked its rays from the camera, through empty space no keyframe had
+    /// mapped.
+    pub(super) fn bound_tiles<'a>(&mut self, allocated: impl Iterator<Item = &'a BrickKey>, voxel: f64) {
+        let to_camera = self.to_camera();
+        let edge = voxel * BRICK_EDGE as f64;
+        for b in allocated {
+            self.for_tiles_reaching(&to_camera, *b, edge, |tile, z_min| {
+                tile.z_near = tile.z_near.min(f32_at_most(z_min - voxel));
+            });
+        }
     }
 }
 
@@ -486,5 +525,68 @@ mod tests {
         };
         assert!(reached(&ahead) > 0);
         assert_eq!(reached(&behind), 0);
+    }
+
+    /// Brute force: every pixel whose ray (through a random point of the pixel) crosses a
+    /// brick lies in a tile the brick reaches, with at most the camera z where the ray enters
+    /// it, for cameras at random poses and bricks all around them, the ones through the
+    /// camera plane included; and some of those reach only part of the image.
+    #[test]
+    fn bricks_reach_every_tile_their_rays_cross() {
+        let scene = test_scene(1);
+        let mut e = MrfEngine::new(0.05, Default::default(), MrfParams::default()).unwrap();
+        e.add_keyframe(scene.frame(0, &scene.views[0], Some(1))).unwrap();
+        let kf = &mut e.keyframes[0];
+        kf.reset_tiles(); // (every tile reachable: nothing bounds its rays' reach yet)
+        let camera = kf.frame.camera;
+        let edge = 0.2;
+        let mut rng = crate::random::Rng::new(5);
+        let (mut through, mut partly, mut crossed) = (0, 0, 0);
+        for _ in 0..12 {
+            let q = nalgebra::Quaternion::new(rng.normal(), rng.normal(), rng.normal(), rng.normal());
+            let rotation = *nalgebra::UnitQuaternion::from_quaternion(q).to_rotation_matrix().matrix();
+            let origin = [(); 3].map(|_| rng.range(-1.0, 1.0));
+            let to_camera = (rotation, origin);
+            let centre = origin.map(|c| (c / edge).floor() as i32);
+            for n in 0..7 * 7 * 7 {
+                let d = [n % 7, n / 7 % 7, n / 49];
+                let b = BrickKey([0, 1, 2].map(|a| centre[a] + d[a] - 3));
+                // Each tile's `priority` holds the z the brick reached it with (infinite: not reached).
+                kf.tiles.iter_mut().for_each(|t| t.priority = f32::INFINITY);
+                kf.for_tiles_reaching(&to_camera, b, edge, |tile, z| tile.priority = z as f32);
+                let corner =
+                    |c: i32| nalgebra::Vector3::from_fn(|a, _| (b.0[a] + (c >> a & 1)) as f64 * edge - origin[a]);
+                let z: Vec<f64> = (0..8).map(|c| (rotation * corner(c)).z).collect();
+                if z.iter().any(|&z| z <= 0.0) && z.iter().any(|&z| z > 0.0) {
+                    through += 1;
+                    partly += kf.tiles.iter().any(|t| t.priority.is_infinite()) as usize;
+                }
+                for (u, v) in (0..camera.height).flat_map(|v| (0..camera.width).map(move |u| (u, v))) {
+                    // The ray in camera axes (z 1 per unit of length), then in the world's.
+                    let (x, y) = (u as f64 + rng.uniform(), v as f64 + rng.uniform());
+                    let ray = nalgebra::Vector3::new((x - camera.cx) / camera.fx, (y - camera.cy) / camera.fy, 1.0);
+                    let dir = rotation.transpose() * ray;
+                    // Where it enters and leaves the brick (slabs), in camera z.
+                    let (mut enter, mut leave) = (0.0f64, f64::INFINITY);
+                    for a in 0..3 {
+                        let (lo, hi) = (b.0[a] as f64 * edge - origin[a], (b.0[a] + 1) as f64 * edge - origin[a]);
+                        let (t0, t1) = (lo / dir[a], hi / dir[a]); // (a zero step: both infinite, or NaN on a face)
+                        (enter, leave) = (enter.max(t0.min(t1)), leave.min(t0.max(t1)));
+                    }
+                    if enter < leave {
+                        crossed += 1;
+                        let tile = &kf.tiles[(v / TILE * kf.tiles_x + u / TILE) as usize];
+                        assert!(
+                            tile.priority as f64 <= enter + 1e-9,
+                            "brick {b:?}, pixel ({x:.2}, {y:.2}) enters at z {enter:.3}"
+                        );
+                    }
+                }
+            }
+        }
+        assert!(
+            through > 100 && partly > 10 && crossed > 100_000,
+            "{through} bricks through the camera plane, {partly} reach part of the image; {crossed} rays crossed"
+        );
     }
 }

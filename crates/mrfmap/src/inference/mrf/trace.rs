@@ -548,8 +548,8 @@ mod tests {
     use super::*;
 
     /// Walks that start at a tile's `z_near` reach the voxels of walks from the camera, with
-    /// the same messages (but for the brick walk's rounding), after a trace and after a new
-    /// keyframe allocated bricks in front of what the tiles had met.
+    /// the same messages (but for the brick walk's rounding): before any trace, after one, and
+    /// after a new keyframe allocated bricks in front of what the tiles had met.
     #[test]
     fn walks_from_the_near_bound_miss_nothing() {
         let frames = test_frames(3);
@@ -557,7 +557,6 @@ mod tests {
         for frame in &frames {
             e.add_keyframe(frame.clone()).unwrap();
         }
-        e.run(1);
         let compare = |e: &MrfEngine, what: &str| {
             let kf = &e.keyframes[1];
             let rays = FrameRays::new(&kf.frame);
@@ -589,6 +588,9 @@ mod tests {
                 "{what}: {skipped} tiles start their walks late, {entries} entries"
             );
         };
+        // Before any trace, from the bricks' corners alone.
+        compare(&e, "before a trace");
+        e.run(1);
         compare(&e, "after a sweep");
         // A keyframe whose surfaces lie halfway to keyframe 1's allocates bricks in front of
         // everything its tiles had met: their bounds come down, and their walks still find

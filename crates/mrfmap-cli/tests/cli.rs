@@ -548,38 +548,84 @@ fn add_noise_writes_a_noisy_twin() {
 }
 
 /// `experiment mrfmap-table2` end to end on the small scene: noise added, thresholds wider than
-/// the orbit make frame 0 the only keyframe, every engine is scored on the other three, and the
-/// report, JSON and pictures are written.
+/// the orbit make frame 0 the only keyframe, every engine and both voxelised surfaces are scored on the
+/// other three at the dataset's placement of the grid and at a shifted one, and the report,
+/// JSON and pictures are written.
 #[test]
 fn mrfmap_table2_experiment_writes_its_report() {
     let dir = workdir("table2");
     let data = dataset(&dir);
     let out = dir.join("t2");
     let args = ["experiment", "mrfmap-table2", s(&data), "-o", s(&out), "--resolutions", "0.1", "-q"];
-    let o = run(&[&args[..], &["--translation", "100", "--rotation", "100"]].concat());
+    let o =
+        run(&[&args[..], &["--translation", "100", "--rotation", "100", "--grid-offsets", "1", "--surfaces"]].concat());
     assert!(o.status.success(), "{}", stderr(&o));
     let report = std::fs::read_to_string(out.join("report.md")).unwrap();
     assert!(report.contains("| mrf |") && report.contains("paper MRFMap"), "{report}");
+    assert!(report.contains("| surfaces of every frame |") && report.contains("Where the grid cuts"), "{report}");
     let json: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("results.json")).unwrap()).unwrap();
     assert_eq!(json["keyframes"], serde_json::json!([0]));
     assert_eq!(json["held_out_views"], serde_json::json!([1, 2, 3]));
+    let placement = &json["grid_placements"][0];
+    let shift = placement["shift_voxels"].as_array().unwrap();
+    assert!(shift.len() == 3 && shift.iter().all(|f| (0.0..1.0).contains(&f.as_f64().unwrap())), "{placement}");
+    let names =
+        |rows: &serde_json::Value| rows.as_array().unwrap().iter().map(|r| r["engine"].clone()).collect::<Vec<_>>();
+    assert_eq!(names(&json["rows"]), names(&placement["rows"]));
+    let accuracy = |row: &serde_json::Value| row["accuracy_constant_5cm"]["mean"].as_f64().unwrap();
     let rows = json["rows"].as_array().unwrap();
-    assert_eq!(rows.len(), 3);
-    for row in rows {
+    assert_eq!(rows.len(), 5);
+    for (row, moved) in rows.iter().zip(placement["rows"].as_array().unwrap()) {
         for key in ["accuracy_constant_5cm", "accuracy_model_std"] {
-            let views = row[key]["views"].as_array().unwrap();
-            assert!(!views.is_empty() && views.iter().all(|a| (0.0..=1.0).contains(&a.as_f64().unwrap())), "{row}");
+            for row in [row, moved] {
+                let views = row[key]["views"].as_array().unwrap();
+                assert!(!views.is_empty() && views.iter().all(|a| (0.0..=1.0).contains(&a.as_f64().unwrap())), "{row}");
+            }
         }
         let tag = format!("{}_10cm", row["engine"].as_str().unwrap());
-        assert!(
-            out.join(format!("map_{tag}.png")).is_file() && out.join(format!("accuracy_{tag}_view2.png")).is_file()
-        );
+        let pictured =
+            out.join(format!("map_{tag}.png")).is_file() && out.join(format!("accuracy_{tag}_view2.png")).is_file();
+        // Pictures of the engines' maps, not of the surfaces.
+        assert_eq!(pictured, !tag.starts_with("surfaces"), "{tag}");
+    }
+    // With voxels finer than the tolerance, the surfaces of every frame, the scored views' own
+    // among them, score well wherever the grid lies (the views and the map moved together).
+    let fine = dir.join("fine");
+    let o = run(&[
+        "experiment",
+        "mrfmap-table2",
+        s(&data),
+        "-o",
+        s(&fine),
+        "--resolutions",
+        "0.02",
+        "--engines",
+        "logodds",
+        "--grid-offsets",
+        "2",
+        "--surfaces",
+        "--translation",
+        "100",
+        "--rotation",
+        "100",
+        "-q",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(fine.join("results.json")).unwrap()).unwrap();
+    for rows in [&json["rows"], &json["grid_placements"][0]["rows"], &json["grid_placements"][1]["rows"]] {
+        assert_eq!(rows[1]["engine"], "surfaces of every frame");
+        assert!(accuracy(&rows[1]) > 0.8, "{rows}");
     }
     // The noisy dataset stays, and a second run replaces it.
     assert!(mrfmap::source::Dataset::open(&out.join("noisy")).is_ok());
     let o = run(&[&args[..], &["--translation", "100", "--rotation", "100", "--engines", "logodds"]].concat());
     assert!(o.status.success(), "{}", stderr(&o));
+    // Without `--surfaces`, the engines alone.
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("results.json")).unwrap()).unwrap();
+    assert_eq!(names(&json["rows"]), vec![serde_json::json!("logodds")]);
     // Every frame a keyframe: nothing to score on, said before any map is built.
     let o = run(&[&args[..], &["--translation", "0.001", "--rotation", "0.001"]].concat());
     assert!(!o.status.success() && stderr(&o).contains("every frame"), "{}", stderr(&o));

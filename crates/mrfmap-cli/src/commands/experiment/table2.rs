@@ -9,18 +9,28 @@
 //! "constant noise model") and with the forward model's std at the peak. Writes `report.md`,
 //! `results.json`, the accuracy image of one held-out view per map and a picture of each map
 //! stood on the world's up axis; the noisy dataset stays in `noisy/` to build from again.
+//!
+//! With `--surfaces`, two maps of no engine beside them, scored the same way: the noise-free surfaces of
+//! the keyframes and of every frame, the scored ones included, voxelised ([`surface_truth`]:
+//! occupied where a clean depth point falls, free where only rays pass). They are what a
+//! binary map scores with perfect depth, not a ceiling: a soft map can score above them (the
+//! MRF does on livingroom1, RESULTS.md). With `--grid-offsets N` everything is built and
+//! scored again with the world shifted by N random fractions of a voxel: at coarse
+//! resolutions a score depends on where the grid cuts the scene's surfaces.
 
 use std::fmt::Write as _;
 use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
-use mrfmap::frames::{NoiseModel, keyframes_by_motion};
+use mrfmap::frames::{Frame, NoiseModel, keyframes_by_motion};
 use mrfmap::inference::{EngineConfig, EngineKind, MapOutput, check_build};
 use mrfmap::map::Map;
 use mrfmap::outputs::pictures::{write_accuracy_image, write_text};
-use mrfmap::outputs::{AccuracyParams, PeakRule, Scorer, Up, View, ViewScore, render_map};
+use mrfmap::outputs::{AccuracyParams, PeakRule, Scorer, Up, View, ViewScore, render_map, surface_truth};
+use mrfmap::random::Rng;
 use mrfmap::source::Dataset;
+use nalgebra::Vector3;
 
 use super::noisy_copy;
 use crate::commands::eval::mean_std;
@@ -67,11 +77,24 @@ pub struct Args {
     /// The world's up axis for the map pictures (ICL-NUIM: +y).
     #[arg(long, default_value = "+y", allow_hyphen_values = true, value_parser = |s: &str| s.parse::<Up>().map_err(|e| e.to_string()))]
     up: Up,
+    /// Also score the noise-free surfaces of the keyframes and of every frame, voxelised:
+    /// what a binary map scores with perfect depth.
+    #[arg(long)]
+    surfaces: bool,
+    /// Also build and score at this many other placements of the voxel grid, each the world
+    /// shifted by a random fraction of a voxel per axis: how much of a score is where the
+    /// grid happens to cut the scene's surfaces (no pictures of these).
+    #[arg(long, default_value_t = 0)]
+    grid_offsets: u32,
 }
+
+/// The names in the report of the voxelised noise-free surfaces: the keyframes', every frame's.
+const SURFACES: [&str; 2] = ["surfaces of the keyframes", "surfaces of every frame"];
 
 /// One map's scores.
 struct Row {
-    engine: EngineKind,
+    /// The engine's name, or one of [`SURFACES`].
+    name: &'static str,
     resolution: f64,
     /// Seconds to build (integration and inference).
     build_s: f64,
@@ -88,7 +111,7 @@ impl Row {
             serde_json::json!({"mean": mean, "std": std, "views": a})
         };
         serde_json::json!({
-            "engine": self.engine.name(),
+            "engine": self.name,
             "resolution": self.resolution,
             "build_seconds": self.build_s,
             "voxels": self.voxels,
@@ -112,40 +135,23 @@ pub fn mrfmap_table2(a: Args) -> Result<()> {
         bail!("every frame of {} is a keyframe: nothing is left to score on", a.dataset.display());
     }
     tracing::info!("{} keyframes of {} frames; {} held-out views scored", keyframes.len(), data.len(), held_out.len());
+    let setup =
+        Setup { a: &a, clean: &clean, data: &data, forward: &forward, keyframes: &keyframes, held_out: &held_out };
     // The view whose accuracy images are written: the middle held-out one.
     let pictured = held_out[held_out.len() / 2];
-
-    let mut rows = Vec::new();
-    for &resolution in &a.resolutions {
-        for &kind in &a.engines {
-            let mut config = EngineConfig::new(kind, resolution);
-            config.crm.particles = a.particles as usize;
-            check_build(&config, dataset_extent(&data, &keyframes, &config)?, MapOutput::InMemory, BUILD_ADVICE)?;
-            let t = Instant::now();
-            let map = build_map(&keyframes, &config, |i| data.frame(i))?.map;
-            let build_s = t.elapsed().as_secs_f64();
-            let tag = format!("{}_{}cm", kind.name(), resolution * 100.0);
-            let (constant, model) = score(&map, &data, &forward, &held_out, |view, score| {
-                if view == pictured {
-                    write_accuracy_image(&a.output.join(format!("accuracy_{tag}_view{view}.png")), score)?;
-                }
-                Ok(())
-            })?;
-            let view = View::overview(&map, a.up).context("the map is empty")?;
-            render_map(&map, &View { width: 800, height: 600, ..view })?
-                .save(&a.output.join(format!("map_{tag}.png")))?;
-            let row = Row { engine: kind, resolution, build_s, voxels: map.voxels.len(), constant, model };
-            tracing::info!(
-                "{kind} {resolution} m: accuracy {:.4} (5 cm), {:.4} (model std); built in {build_s:.1} s",
-                mean_std(&row.constant).map_or(f64::NAN, |m| m.0),
-                mean_std(&row.model).map_or(f64::NAN, |m| m.0)
-            );
-            rows.push(row);
-        }
+    let rows = setup.rows([0.0; 3], Some(pictured))?;
+    // Other placements of the grid: each a shift of the world by a random fraction of a voxel
+    // per axis (the same fractions at every resolution), drawn from the noise's seed.
+    let mut rng = Rng::stream(a.noise.seed, 0x6F1D, 0);
+    let mut placements = Vec::new();
+    for k in 0..a.grid_offsets {
+        let fraction = [(); 3].map(|_| rng.uniform());
+        tracing::info!("grid placement {} of {}: shift {fraction:.3?} voxel", k + 1, a.grid_offsets);
+        placements.push((fraction, setup.rows(fraction, None)?));
     }
     let elapsed = started.elapsed().as_secs_f64();
     let noise_line = describe(&summary);
-    let report = report(&a, &rows, &keyframes, held_out.len(), &noise_line, pictured, elapsed);
+    let report = report(&a, &rows, &placements, &keyframes, held_out.len(), &noise_line, pictured, elapsed);
     write_text(&a.output.join("report.md"), &report)?;
     let json = serde_json::json!({
         "dataset": a.dataset.display().to_string(),
@@ -157,48 +163,136 @@ pub fn mrfmap_table2(a: Args) -> Result<()> {
         "noise": noise_line,
         "seconds": elapsed,
         "rows": rows.iter().map(Row::json).collect::<Vec<_>>(),
+        "grid_placements": placements.iter().map(|(fraction, rows)| serde_json::json!({
+            "shift_voxels": fraction,
+            "rows": rows.iter().map(Row::json).collect::<Vec<_>>(),
+        })).collect::<Vec<_>>(),
     });
     write_text(&a.output.join("results.json"), &serde_json::to_string_pretty(&json)?)?;
     print!("{report}");
     Ok(())
 }
 
-/// Accuracy of `map` on each of `views` against the noise-free depth, with the constant
-/// tolerance and with `model`'s std at the peak (the reference metric); `each` sees every view's
-/// constant-tolerance score.
-fn score(
-    map: &Map,
-    data: &Dataset,
-    model: &NoiseModel,
-    views: &[usize],
-    mut each: impl FnMut(usize, &ViewScore) -> Result<()>,
-) -> Result<(Vec<f64>, Vec<f64>)> {
-    let params = AccuracyParams { sigma: CONSTANT_SIGMA, k: 1.0, peak: PeakRule::Exit, ..AccuracyParams::for_map(map) };
-    let scorer = Scorer::new(map, params);
-    let (mut a, mut b) = (Vec::new(), Vec::new());
-    let bar = crate::progress::bar(Some(views.len()), "scoring");
-    for &view in views {
-        let frame = data.frame(view)?;
-        let truth = data.truth_depth(view)?.context("add-noise writes gt_depth/")?;
-        let [constant, modelled] = <[ViewScore; 2]>::try_from(scorer.score_view_each(
-            &frame.camera,
-            &frame.pose,
-            &truth,
-            &[None, Some(model)],
-        ))
-        .expect("two tolerances");
-        each(view, &constant)?;
-        a.extend(constant.accuracy());
-        b.extend(modelled.accuracy());
-        bar.inc(1);
-    }
-    bar.finish_and_clear();
-    Ok((a, b))
+/// What every placement of the grid is built and scored from.
+struct Setup<'a> {
+    a: &'a Args,
+    clean: &'a Dataset,
+    data: &'a Dataset,
+    forward: &'a NoiseModel,
+    keyframes: &'a [usize],
+    held_out: &'a [usize],
 }
 
+impl Setup<'_> {
+    /// Every resolution's rows (the voxelised surfaces, then the engines) with the world shifted by
+    /// `fraction` of a voxel per axis; with `pictured`, the maps' pictures and that view's
+    /// accuracy images are written.
+    fn rows(&self, fraction: [f64; 3], pictured: Option<usize>) -> Result<Vec<Row>> {
+        let (a, data) = (self.a, self.data);
+        let every: Vec<usize> = (0..self.clean.len()).collect();
+        let mut rows = Vec::new();
+        for &resolution in &a.resolutions {
+            let shift = Vector3::from(fraction) * resolution;
+            let moved = |frame: mrfmap::Result<Frame>| {
+                frame.map(|mut f| {
+                    f.pose.translation.vector += shift;
+                    f
+                })
+            };
+            let limits = EngineConfig::new(EngineKind::LogOdds, resolution).limits;
+            for (name, frames) in SURFACES.into_iter().zip([self.keyframes, &every]).filter(|_| a.surfaces) {
+                let t = Instant::now();
+                let mut map = Map::new(EngineKind::LogOdds, resolution)?;
+                map.voxels = surface_truth(frames.iter().map(|&i| moved(self.clean.frame(i))), resolution, &limits)?;
+                let build_s = t.elapsed().as_secs_f64();
+                let (constant, model) = self.score(&map, shift, |_, _| Ok(()))?;
+                rows.push(Row { name, resolution, build_s, voxels: map.voxels.len(), constant, model });
+            }
+            for &kind in &a.engines {
+                let mut config = EngineConfig::new(kind, resolution);
+                config.crm.particles = a.particles as usize;
+                check_build(
+                    &config,
+                    dataset_extent(data, self.keyframes, &config)?,
+                    MapOutput::InMemory,
+                    BUILD_ADVICE,
+                )?;
+                let t = Instant::now();
+                let map = build_map(self.keyframes, &config, |i| moved(data.frame(i)))?.map;
+                let build_s = t.elapsed().as_secs_f64();
+                let tag = format!("{}_{}cm", kind.name(), resolution * 100.0);
+                let (constant, model) = self.score(&map, shift, |view, score| {
+                    if Some(view) == pictured {
+                        write_accuracy_image(&a.output.join(format!("accuracy_{tag}_view{view}.png")), score)?;
+                    }
+                    Ok(())
+                })?;
+                if pictured.is_some() {
+                    let view = View::overview(&map, a.up).context("the map is empty")?;
+                    render_map(&map, &View { width: 800, height: 600, ..view })?
+                        .save(&a.output.join(format!("map_{tag}.png")))?;
+                }
+                let row = Row { name: kind.name(), resolution, build_s, voxels: map.voxels.len(), constant, model };
+                tracing::info!(
+                    "{kind} {resolution} m: accuracy {:.4} (5 cm), {:.4} (model std); built in {build_s:.1} s",
+                    mean_std(&row.constant).map_or(f64::NAN, |m| m.0),
+                    mean_std(&row.model).map_or(f64::NAN, |m| m.0)
+                );
+                rows.push(row);
+            }
+        }
+        Ok(rows)
+    }
+
+    /// Accuracy of `map` on each held-out view (the world shifted by `shift`) against the
+    /// noise-free depth, with the constant tolerance and with the forward model's std at the
+    /// peak (the reference metric); `each` sees every view's constant-tolerance score.
+    fn score(
+        &self,
+        map: &Map,
+        shift: Vector3<f64>,
+        mut each: impl FnMut(usize, &ViewScore) -> Result<()>,
+    ) -> Result<(Vec<f64>, Vec<f64>)> {
+        let params =
+            AccuracyParams { sigma: CONSTANT_SIGMA, k: 1.0, peak: PeakRule::Exit, ..AccuracyParams::for_map(map) };
+        let scorer = Scorer::new(map, params);
+        let (mut a, mut b) = (Vec::new(), Vec::new());
+        let bar = crate::progress::bar(Some(self.held_out.len()), "scoring");
+        for &view in self.held_out {
+            let mut frame = self.data.frame(view)?;
+            frame.pose.translation.vector += shift;
+            let truth = self.data.truth_depth(view)?.context("add-noise writes gt_depth/")?;
+            let [constant, modelled] = <[ViewScore; 2]>::try_from(scorer.score_view_each(
+                &frame.camera,
+                &frame.pose,
+                &truth,
+                &[None, Some(self.forward)],
+            ))
+            .expect("two tolerances");
+            each(view, &constant)?;
+            a.extend(constant.accuracy());
+            b.extend(modelled.accuracy());
+            bar.inc(1);
+        }
+        bar.finish_and_clear();
+        Ok((a, b))
+    }
+}
+
+/// The rows' names in report order: the engines', then the voxelised surfaces' if asked for.
+fn names(a: &Args) -> impl Iterator<Item = &'static str> + '_ {
+    let surfaces = if a.surfaces { &SURFACES[..] } else { &[] };
+    a.engines.iter().map(|k| k.name()).chain(surfaces.iter().copied())
+}
+
+/// A placement of the grid (the world's shift in voxels per axis) and its rows.
+type Placement = ([f64; 3], Vec<Row>);
+
+#[allow(clippy::too_many_arguments)]
 fn report(
     a: &Args,
     rows: &[Row],
+    placements: &[Placement],
     keyframes: &[usize],
     scored: usize,
     noise_line: &str,
@@ -212,7 +306,7 @@ fn report(
         "Noise: `{}` (seed {}); {noise_line}. Keyframes ({}: moved > {} m or turned > {} rad from the last): {}. \
          Scored: {scored} other frames ({}) against their noise-free depth, reference metric \
          (docs/ALGORITHMS.md 6.1). Default engine settings (CRM: {} particles); the MRF and CRM map with the noise's \
-         forward model (`noisy/noise.toml`). Total time {:.0} s.\n",
+         forward model (`noisy/noise.toml`).{} Total time {:.0} s.\n",
         a.noise.model,
         a.noise.seed,
         keyframes.len(),
@@ -225,6 +319,13 @@ fn report(
             format!("every {}th non-keyframe", a.views_every)
         },
         a.particles,
+        if a.surfaces {
+            " The rows \"surfaces of ...\" are no engine's: the noise-free surfaces of the keyframes and of every \
+             frame, voxelised (occupied where a clean depth point falls, free where only rays pass), what a binary \
+             map scores with perfect depth (a soft map can score above it)."
+        } else {
+            ""
+        },
         elapsed
     );
     for (title, pick) in [
@@ -237,10 +338,10 @@ fn report(
             let _ = write!(r, " {res} m |");
         }
         let _ = writeln!(r, "\n|---|{}", "---|".repeat(a.resolutions.len()));
-        for &kind in &a.engines {
-            let _ = write!(r, "| {kind} |");
+        for name in names(a) {
+            let _ = write!(r, "| {name} |");
             for &res in &a.resolutions {
-                let row = rows.iter().find(|x| x.engine == kind && x.resolution == res);
+                let row = rows.iter().find(|x| x.name == name && x.resolution == res);
                 let values = row.map(|x| if pick == 0 { &x.constant } else { &x.model });
                 match values.and_then(|v| mean_std(v)) {
                     Some((m, s)) => {
@@ -267,18 +368,53 @@ fn report(
         }
         r.push('\n');
     }
+    if !placements.is_empty() {
+        let _ = writeln!(
+            r,
+            "## Where the grid cuts the surfaces\n\nAccuracy (constant 5 cm) with the dataset's placement of the grid and \
+             with {} others, the world shifted by a random fraction of a voxel per axis ({}): the placement's mean \
+             over the views, then the least and the largest over the placements.\n",
+            placements.len(),
+            placements
+                .iter()
+                .map(|(f, _)| format!("({:.2}, {:.2}, {:.2})", f[0], f[1], f[2]))
+                .collect::<Vec<_>>()
+                .join(", ")
+        );
+        let _ = write!(r, "| engine |");
+        for res in &a.resolutions {
+            let _ = write!(r, " {res} m: dataset's | least | largest |");
+        }
+        let _ = writeln!(r, "\n|---|{}", "---|---|---|".repeat(a.resolutions.len()));
+        for name in names(a) {
+            let _ = write!(r, "| {name} |");
+            for &res in &a.resolutions {
+                let mean = |rows: &[Row]| {
+                    let row = rows.iter().find(|x| x.name == name && x.resolution == res);
+                    row.and_then(|x| mean_std(&x.constant)).map(|m| m.0)
+                };
+                match mean(rows) {
+                    Some(m) => {
+                        let others = placements.iter().filter_map(|(_, rows)| mean(rows));
+                        let (least, largest) = others.fold((m, m), |(l, h), x| (l.min(x), h.max(x)));
+                        let _ = write!(r, " {m:.3} | {least:.3} | {largest:.3} |");
+                    }
+                    None => r.push_str(" - | - | - |"),
+                }
+            }
+            r.push('\n');
+        }
+        r.push('\n');
+    }
     let _ =
         writeln!(r, "## Builds\n\n| engine | resolution | build s | voxels | map | accuracy image (view {pictured}) |");
     let _ = writeln!(r, "|---|---|---|---|---|---|");
-    for x in rows {
-        let tag = format!("{}_{}cm", x.engine.name(), x.resolution * 100.0);
+    for x in rows.iter().filter(|x| !SURFACES.contains(&x.name)) {
+        let tag = format!("{}_{}cm", x.name, x.resolution * 100.0);
         let _ = writeln!(
             r,
             "| {} | {} m | {:.1} | {} | ![](map_{tag}.png) | ![](accuracy_{tag}_view{pictured}.png) |",
-            x.engine.name(),
-            x.resolution,
-            x.build_s,
-            x.voxels
+            x.name, x.resolution, x.build_s, x.voxels
         );
     }
     r

@@ -47,7 +47,8 @@
 //!   exactly (it does not reset the others' and `S` the way the reference code does, which
 //!   would double-count). A new brick marks stale the tiles of other keyframes whose rays may
 //!   cross it (the brick projected into their images, nearer than their rays reach), and
-//!   lowers their near bounds (`z_near`, where a trace starts its rays' walks) to it; a freed
+//!   lowers their near bounds (`z_near`, where a trace starts its rays' walks) to it; a new
+//!   or re-posed keyframe's tiles start with the bound of every brick allocated then; a freed
 //!   brick leaves every tile, and the tiles that reached it are marked stale.
 //!
 //! **A tile's life, and the change clock.** The engine counts keyframe updates in an

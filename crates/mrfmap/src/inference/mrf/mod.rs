@@ -248,7 +248,7 @@ impl MrfEngine {
         kf.bricks = self.allocation_of(&kf);
         let new = self.reference_bricks(&kf.bricks);
         self.mark_tiles_reaching(&new);
-        kf.bound_tiles(self.brick_refs.keys(), self.resolution());
+        kf.bound_tiles(self.brick_refs.keys(), self.brick_edge());
         self.changed.extend(kf.bricks.iter().copied());
         self.keyframes.push(kf);
         Ok(id)
@@ -280,8 +280,8 @@ impl MrfEngine {
         let bricks = self.allocation_of(&self.keyframes[i]);
         let new = self.reference_bricks(&bricks);
         self.mark_tiles_reaching(&new);
-        let voxel = self.resolution();
-        self.keyframes[i].bound_tiles(self.brick_refs.keys(), voxel);
+        let edge = self.brick_edge();
+        self.keyframes[i].bound_tiles(self.brick_refs.keys(), edge);
         self.changed.extend(old.iter().chain(&bricks).copied());
         self.keyframes[i].bricks = bricks;
         self.release_bricks(&old);

@@ -8,9 +8,8 @@ use rustc_hash::{FxHashMap, FxHashSet};
 
 use super::MrfEngine;
 use super::tiles::Tile;
-use crate::inference::Engine;
 use crate::inference::sigmoid;
-use crate::map::{BRICK_EDGE, Brick, BrickKey, Grid, VoxelKey};
+use crate::map::{Brick, BrickKey, Grid, VoxelKey};
 
 /// What a schedule ([`MrfEngine::run`], [`MrfEngine::run_until`]) did.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -250,7 +249,7 @@ impl MrfEngine {
     /// check may reach, and records the check. Returns those bricks, or `None` when the log
     /// was dropped since (then every tile is suspect and the brick stamps tell what changed).
     pub(super) fn mark_suspects(&mut self, i: usize) -> Option<FxHashSet<BrickKey>> {
-        let edge = self.resolution() * BRICK_EDGE as f64;
+        let edge = self.brick_edge();
         let since = self.keyframes[i].checked_at;
         let kf = &mut self.keyframes[i];
         kf.checked_at = self.epoch;

@@ -152,12 +152,13 @@ pub(super) struct Tile {
     pub(super) suspect: bool,
     /// The largest camera z its rays reach (m); new bricks beyond it cannot affect it.
     pub(super) z_max: f32,
-    /// A camera z (m) before which none of its rays meets an allocated brick: a voxel short
-    /// of the nearest one its last trace met, lowered since to the nearest corner of each
-    /// brick allocated that may reach it; before its first trace, a voxel short of the nearest
-    /// corner of the bricks allocated then that may reach it ([`Keyframe::bound_tiles`]). A
-    /// trace starts its rays' walks there: at 0.02 m a ray crossed about 39 bricks, most of
-    /// them empty space in front of the band of allocated bricks around the surfaces.
+    /// A camera z (m) before which none of its rays meets an allocated brick: where its last
+    /// trace's rays first met one, lowered since to the nearest corner of each brick
+    /// allocated that may reach it; before its first trace, the nearest corner of the bricks
+    /// allocated then that may reach it ([`Keyframe::bound_tiles`]). A trace starts its rays'
+    /// walks a voxel before it (so that rounding cannot start a walk inside the first brick):
+    /// at 0.02 m a ray crossed about 39 bricks, most of them empty space in front of the band
+    /// of allocated bricks around the surfaces.
     pub(super) z_near: f32,
     /// How far (in marginal) its last update fell short of what its rays computed, where
     /// damping held a message back: the largest move the rest of the step would make.
@@ -327,22 +328,26 @@ impl Keyframe {
         self.tiles = vec![Tile { stale: true, z_max: f32::INFINITY, z_near: f32::INFINITY, ..Tile::default() }; n];
     }
 
-    /// Gives tiles just reset ([`Keyframe::reset_tiles`]) their near bound: a voxel (`voxel`
-    /// m) short of the nearest corner of the bricks `allocated` that may reach each. Before it
-    /// a first trace walked its rays from the camera, through empty space no keyframe had
+    /// Gives tiles just reset ([`Keyframe::reset_tiles`]) their near bound: the nearest
+    /// corner of the bricks `allocated` (of edge `edge` m) that may reach each. Before it a
+    /// first trace walked its rays from the camera, through empty space no keyframe had
     /// mapped.
-    pub(super) fn bound_tiles<'a>(&mut self, allocated: impl Iterator<Item = &'a BrickKey>, voxel: f64) {
+    pub(super) fn bound_tiles<'a>(&mut self, allocated: impl Iterator<Item = &'a BrickKey>, edge: f64) {
         let to_camera = self.to_camera();
-        let edge = voxel * BRICK_EDGE as f64;
         for b in allocated {
             self.for_tiles_reaching(&to_camera, *b, edge, |tile, z_min| {
-                tile.z_near = tile.z_near.min(f32_at_most(z_min - voxel));
+                tile.z_near = tile.z_near.min(f32_at_most(z_min));
             });
         }
     }
 }
 
 impl MrfEngine {
+    /// A brick's edge (m).
+    pub(super) fn brick_edge(&self) -> f64 {
+        self.resolution() * BRICK_EDGE as f64
+    }
+
     /// References `bricks`; returns those that were not allocated before (they start at the
     /// prior; a brick already allocated keeps its sums).
     pub(super) fn reference_bricks(&mut self, bricks: &[BrickKey]) -> Vec<BrickKey> {
@@ -369,7 +374,7 @@ impl MrfEngine {
         if bricks.is_empty() {
             return;
         }
-        let edge = self.resolution() * BRICK_EDGE as f64;
+        let edge = self.brick_edge();
         self.keyframes.par_iter_mut().for_each(|kf| {
             let to_camera = kf.to_camera();
             for b in bricks {

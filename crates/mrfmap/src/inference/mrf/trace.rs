@@ -358,9 +358,10 @@ macro_rules! tile_trace {
                 let (cols, rows) = kf.tile_pixels(t);
                 let (mut z_max, mut traced) = (0.0f64, 0usize);
                 // The nearest camera z where a ray enters an allocated brick (the tile's next
-                // `z_near`), and where this trace's walks start.
+                // `z_near`), and where this trace's walks start: a voxel before the tile's bound,
+                // so that rounding where a walk starts cannot skip into a brick's first voxel.
                 let mut z_first = f64::INFINITY;
-                let z_near = tile.z_near as f64;
+                let z_near = tile.z_near as f64 - r;
                 let edge = r * BRICK_EDGE as f64;
                 let depth = &kf.frame.depth;
                 let stride = self.tile_stride(kf, &cols, &rows);
@@ -477,9 +478,7 @@ macro_rules! tile_trace {
                 // The new tile by brick and slot, with each entry's change of the sum; voxels no ray
                 // reaches any more lose the tile's message (`gone`, rare, in the same order, applied
                 // after).
-                // (A voxel short of the nearest brick met, so that rounding where the next
-                // trace's walks start cannot skip into it.)
-                let mut new = Tile { z_max: z_max as f32, z_near: f32_at_most(z_first - r), ..Tile::default() };
+                let mut new = Tile { z_max: z_max as f32, z_near: f32_at_most(z_first), ..Tile::default() };
                 new.entries.reserve_exact(scratch.voxels.len());
                 let mut changes = Vec::with_capacity(scratch.voxels.len());
                 let mut gone = Vec::new();

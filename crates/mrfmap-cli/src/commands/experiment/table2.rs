@@ -199,11 +199,20 @@ impl Setup<'_> {
                     f
                 })
             };
-            let limits = EngineConfig::new(EngineKind::LogOdds, resolution).limits;
+            // (The surfaces' voxels are those a log-odds map of the same frames holds: its
+            // estimate is theirs.)
+            let surfaces = EngineConfig::new(EngineKind::LogOdds, resolution);
             for (name, frames) in SURFACES.into_iter().zip([self.keyframes, &every]).filter(|_| a.surfaces) {
+                check_build(
+                    &surfaces,
+                    dataset_extent(self.clean, frames, &surfaces)?,
+                    MapOutput::InMemory,
+                    BUILD_ADVICE,
+                )?;
                 let t = Instant::now();
                 let mut map = Map::new(EngineKind::LogOdds, resolution)?;
-                map.voxels = surface_truth(frames.iter().map(|&i| moved(self.clean.frame(i))), resolution, &limits)?;
+                map.voxels =
+                    surface_truth(frames.iter().map(|&i| moved(self.clean.frame(i))), resolution, &surfaces.limits)?;
                 let build_s = t.elapsed().as_secs_f64();
                 let (constant, model) = self.score(&map, shift, |_, _| Ok(()))?;
                 rows.push(Row { name, resolution, build_s, voxels: map.voxels.len(), constant, model });

@@ -662,6 +662,11 @@ struct View<'a> {
     /// part per row, `y_v R e_y + R e_z`: see [`View::inv_dirs`].
     col_dirs: [Vec<f64>; 3],
     row_dirs: Vec<[f64; 3]>,
+    /// The least and greatest of those parts per block of [`BLOCK`] columns (per axis), and
+    /// per block of rows: the directions of a block's pixels lie between their sums (see
+    /// [`View::block_misses`]).
+    col_block_dirs: [Vec<[f64; 2]>; 3],
+    row_block_dirs: Vec<[[f64; 2]; 3]>,
 }
 
 impl<'a> View<'a> {
@@ -679,7 +684,17 @@ impl<'a> View<'a> {
         let c = &frame.camera;
         let dense_range = dense_range(&frame.camera, resolution);
         let col_dirs = [0, 1, 2].map(|a| camera.xs.iter().map(|x| x * r_wc[(a, 0)]).chain([0.0; BLOCK]).collect());
-        let row_dirs = camera.ys.iter().map(|y| [0, 1, 2].map(|a| y * r_wc[(a, 1)] + r_wc[(a, 2)])).collect();
+        let row_dirs: Vec<[f64; 3]> =
+            camera.ys.iter().map(|y| [0, 1, 2].map(|a| y * r_wc[(a, 1)] + r_wc[(a, 2)])).collect();
+        let extremes = |parts: &mut dyn Iterator<Item = f64>| {
+            parts.fold([f64::INFINITY, f64::NEG_INFINITY], |[lo, hi], d| [lo.min(d), hi.max(d)])
+        };
+        let col_block_dirs = [0, 1, 2].map(|a: usize| {
+            let cols: &Vec<f64> = &col_dirs[a];
+            cols[..seg.width].chunks(BLOCK).map(|c| extremes(&mut c.iter().copied())).collect()
+        });
+        let row_block_dirs =
+            row_dirs.chunks(BLOCK).map(|rows| [0, 1, 2].map(|a| extremes(&mut rows.iter().map(|r| r[a])))).collect();
         View {
             seg,
             r_wc,
@@ -697,6 +712,8 @@ impl<'a> View<'a> {
             keep: None,
             col_dirs,
             row_dirs,
+            col_block_dirs,
+            row_block_dirs,
         }
     }
 
@@ -915,6 +932,50 @@ impl<'a> View<'a> {
         })
     }
 
+    /// Whether no pixel of block `(bu, bv)` of the pyramid's first level, whose segments lie
+    /// within `bounds`, can pass through the box `lo..hi` (world axes, relative to the camera):
+    /// the slab test of [`slabs_cross`] for the whole box of directions the block's rays lie
+    /// in, one test where its pixels take one per row. Behind a surface seen at a slant, a
+    /// voxel's nearest corner is far in front of where the rays meet it, so most blocks that
+    /// pass [`Bounds::miss`] are stopped here.
+    ///
+    /// It never says "miss" for a block with a pixel that passes: a ray with direction `d`
+    /// (per metre of camera depth) is inside slab `a` at depth `t > 0` only where
+    /// `t dmin <= hi` and `t dmax >= lo` for any `dmin <= d_a <= dmax`, and the block's `d_a`
+    /// (sums of a column's part and a row's, rounded) lie between the rounded sums of the
+    /// least parts and of the greatest. The lanes' values are within a relative 2^-23 of
+    /// those depths (an f32 reciprocal and an f32 product), so the bounds are widened by a
+    /// relative 1e-5 first.
+    #[inline]
+    fn block_misses(&self, bu: usize, bv: usize, bounds: &Bounds, lo: &[f32; 3], hi: &[f32; 3]) -> bool {
+        let (mut t0, mut t1) = (0.0f64, f64::INFINITY);
+        let rows = &self.row_block_dirs[bv];
+        for a in 0..3 {
+            let [c_lo, c_hi] = self.col_block_dirs[a][bu];
+            let (d_min, d_max) = (c_lo + rows[a][0], c_hi + rows[a][1]);
+            let (l, h) = (lo[a] as f64, hi[a] as f64);
+            // t d_min <= h
+            if d_min > 0.0 {
+                t1 = t1.min(h / d_min);
+            } else if d_min < 0.0 {
+                t0 = t0.max(h / d_min);
+            } else if h < 0.0 {
+                return true;
+            }
+            // t d_max >= l
+            if d_max > 0.0 {
+                t0 = t0.max(l / d_max);
+            } else if d_max < 0.0 {
+                t1 = t1.min(l / d_max);
+            } else if l > 0.0 {
+                return true;
+            }
+        }
+        const WIDEN: f64 = 1e-5;
+        let (t0, t1) = (t0 - t0.abs() * WIDEN, t1 + t1.abs() * WIDEN);
+        t0 >= t1 || bounds.end_max() as f64 <= t0 || bounds.start_min() as f64 >= t1
+    }
+
     /// The exact test for one voxel: does the segment of some pixel in `rect` pass through it?
     fn voxel_crossed(&self, key: [i32; 3], footprint: &Footprint) -> bool {
         let r = self.resolution;
@@ -948,7 +1009,8 @@ impl<'a> View<'a> {
         let (pixels, width, (z_near, z_far)) = (&self.seg.pixels, self.seg.width, (footprint.z_near, footprint.z_far));
         (rect.v0 >> k..(rect.v1 >> k) + 1).any(|bv| {
             (rect.u0 >> k..(rect.u1 >> k) + 1).any(|bu| {
-                if blocks.cells[bv * blocks.width + bu].miss(z_near, z_far) {
+                let cell = &blocks.cells[bv * blocks.width + bu];
+                if cell.miss(z_near, z_far) || self.block_misses(bu, bv, cell, &lo, &hi) {
                     return false;
                 }
                 let (v0, v1) = ((bv << k).max(rect.v0), ((bv + 1) << k).min(rect.v1 + 1));
@@ -1083,6 +1145,49 @@ pub(super) mod tests {
             .flat_map(|(b, m)| mask_slots(m).map(|s| b.voxel(s)).collect::<Vec<_>>())
             .collect();
         (set, c.ends.into_iter().collect())
+    }
+
+    /// A block that [`View::block_misses`] rules out has no pixel whose slab test passes, for
+    /// voxels around the frames' surfaces (where the exact tests run); and it rules out many.
+    #[test]
+    fn block_tests_keep_every_pixel_that_crosses() {
+        let mut rng = Rng::new(11);
+        let (mut kept_crossing, mut ruled_out) = (0usize, 0usize);
+        for case in 0..60 {
+            let frame = random_frame(&mut rng);
+            let r = rng.range(0.03, 0.25);
+            let limits = RayLimits::default();
+            let mut p = Projector::default();
+            let rays = FrameRays::with_camera_rays(&frame, &mut p.camera_rays);
+            p.segments.fill(&rays, &limits, r);
+            let Some((view, _)) = View::over(&rays, &p.segments, &limits, r, None) else { continue };
+            let seg = &p.segments;
+            let blocks = &seg.levels[0];
+            for _ in 0..40 {
+                // A voxel near the end of a random pixel's segment.
+                let (u, v) = ((rng.uniform() * seg.width as f64) as u32, (rng.uniform() * seg.height as f64) as u32);
+                let Some(ray) = rays.ray(u, v) else { continue };
+                let end = FrameRays::endpoint(&ray);
+                let key: [i32; 3] =
+                    std::array::from_fn(|a| floor_i32(end[a] / r) + rng.range(-2.0, 3.0).floor() as i32);
+                let lo: [f32; 3] = std::array::from_fn(|a| (key[a] as f64 * r - view.origin[a]) as f32);
+                let hi: [f32; 3] = std::array::from_fn(|a| ((key[a] + 1) as f64 * r - view.origin[a]) as f32);
+                for bv in 0..seg.height.div_ceil(BLOCK) {
+                    for bu in 0..blocks.width {
+                        let crossing = (bv * BLOCK..((bv + 1) * BLOCK).min(seg.height)).any(|v| {
+                            (bu * BLOCK..((bu + 1) * BLOCK).min(seg.width)).any(|u| {
+                                slabs_cross(&[seg.pixels[v * seg.width + u]], &view.inv_dirs(u, v), &lo, &hi)[0]
+                            })
+                        });
+                        let out = view.block_misses(bu, bv, &blocks.cells[bv * blocks.width + bu], &lo, &hi);
+                        assert!(!(out && crossing), "case {case}: block ({bu}, {bv}) ruled out of voxel {key:?}");
+                        kept_crossing += crossing as usize;
+                        ruled_out += out as usize;
+                    }
+                }
+            }
+        }
+        assert!(kept_crossing > 1000 && ruled_out > 10 * kept_crossing, "{kept_crossing} kept, {ruled_out} ruled out");
     }
 
     #[test]

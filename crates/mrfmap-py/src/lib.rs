@@ -20,7 +20,7 @@ use mrfmap::outputs::{
     LiveEngine, OctomapFormat, PlyOptions, PointAnswer, QueryOptions, VoxelSource, check_path, query_box, query_points,
     query_polyline, query_segments, write_octomap, write_ply,
 };
-use mrfmap::pipeline::{build, check_indices, dataset_extent, integrate, stream_bag};
+use mrfmap::pipeline::{build, check_indices, dataset_extent, integrate, read_ahead, stream_bag};
 use mrfmap::source::bag::BagOptions;
 use nalgebra::{Matrix3, Rotation3, Translation3, UnitQuaternion};
 use numpy::{PyArray1, PyArray2, PyArrayMethods, PyReadonlyArray1, PyReadonlyArray2};
@@ -940,8 +940,11 @@ fn build_dataset(py: Python<'_>, dataset: PathBuf, options: Option<&Bound<'_, Py
         // Refused before any work, as `mrfmap build` refuses (MemoryError).
         let advice = "use a coarser resolution, or map less with bounds or max_range";
         check_build(&spec.config, dataset_extent(&spec.dataset, &all, &spec.config)?, MapOutput::InMemory, advice)?;
-        let mut frames = all.iter().map(|&i| spec.dataset.frame(i).map(|f| (i, f)));
-        build(&spec.config, &mut frames, Some(all.len()), &mut (), None)
+        read_ahead(
+            &all,
+            |i| spec.dataset.frame(i),
+            |frames| build(&spec.config, frames, Some(all.len()), &mut (), None),
+        )
     })?;
     Ok(PyMap { map: report.map })
 }

@@ -14,7 +14,8 @@ use mrfmap::frames::{Frame, RangeScan};
 use mrfmap::inference::{Budget, EngineConfig, EngineKind, MapOutput, Tiling, check_build, scan_extent};
 use mrfmap::map::TileKey;
 use mrfmap::pipeline::{
-    BUILD_ADVICE, Built, Readings, Snapshots, build_engine, build_online, dataset_extent, format_ranges, select_frames,
+    BUILD_ADVICE, Built, Readings, Snapshots, build_engine, build_online, dataset_extent, format_ranges, read_ahead,
+    select_frames,
 };
 use mrfmap::source::FrameCache;
 
@@ -236,8 +237,8 @@ pub fn run(a: Args) -> Result<()> {
             a.resolution
         );
         up = dataset.up();
-        let mut readings = indices.iter().map(|&i| dataset.frame(i).map(|f| (i, f)));
-        (frames_build(&mut readings, Some(indices.len()))?, indices)
+        let built = read_ahead(&indices, |i| dataset.frame(i), |readings| frames_build(readings, Some(indices.len())))?;
+        (built, indices)
     };
     // What went in, so `eval` can tell held-out views from views the map was built from.
     let mut params = BTreeMap::new();

@@ -8,6 +8,7 @@
 //!   [`Snapshots`]; [`build`] makes the engine, feeds it and runs its deferred inference;
 //!   [`build_engine`] keeps the engine ([`Built`]), to save its map straight to a file;
 //!   [`build_online`] feeds an MRF frame by frame on its anytime schedule, as a robot would;
+//! - [`read_ahead`]: the next frame read while the engine integrates this one;
 //! - which frames, and how a map records them: [`select_frames`], [`format_ranges`];
 //! - memory, before and during a build: [`dataset_extent`], [`Growth`];
 //! - [`stream_bag`] (feature `bags`): a ROS bag's depth images streamed into any of these.
@@ -27,6 +28,7 @@
 //! # Ok::<(), mrfmap::Error>(())
 //! ```
 
+mod ahead;
 mod memory;
 mod selection;
 mod snapshots;
@@ -35,6 +37,7 @@ mod stream;
 
 use std::time::{Duration, Instant};
 
+pub use ahead::read_ahead;
 pub use memory::{BUILD_ADVICE, Growth, SAMPLE_FRAMES, dataset_extent};
 pub use selection::{check_indices, format_ranges, parse_ranges, select_frames};
 pub use snapshots::Snapshots;

@@ -48,7 +48,7 @@ pub struct CrossedVoxels {
 }
 
 /// Finds the voxels a depth image's rays cross by projection (see the module documentation).
-/// It keeps its per-pixel buffers (about 9 bytes per pixel) from one frame to the next:
+/// It keeps its per-pixel buffers (about 5 bytes per pixel, 9 with bounds) from one frame to the next:
 /// allocating them afresh cost a tenth of the time in page faults.
 ///
 /// ```
@@ -238,8 +238,11 @@ enum Seen {
 struct Segments {
     width: usize,
     height: usize,
-    /// Each pixel's segment in camera depth: level 0 of the depth pyramid.
-    pixels: Vec<PixelDepths>,
+    /// Each pixel's segment end in camera depth, and its start: level 0 of the depth pyramid
+    /// ([`Segments::pixel`]). Without bounds every segment starts at the camera, and `starts`
+    /// is empty: 4 bytes a pixel less, which pays for the frame that a build reads ahead.
+    ends: Vec<f32>,
+    starts: Vec<f32>,
     /// Depth bounds per pyramid level 2, 3, ... (`levels[k - 2]`: blocks of `2^k x 2^k`; the
     /// first is of [`BLOCK`] x [`BLOCK`] pixels). Level 1 is not kept: its 4 bytes a pixel were
     /// a fifth of a small build's heap, and a rectangle of at most 3 x 3 pixels, which it
@@ -247,9 +250,12 @@ struct Segments {
     levels: Vec<Level>,
 }
 
-/// One pixel's segment in camera z, `[start, end]`: the pyramid's level 0. Its [`Bounds`]
-/// (one pixel's four bounds are two numbers twice) are made when read, so it takes 8 bytes a
-/// pixel where they took 16. (The slab tests need the pixel's direction too, which
+/// One pixel's segment in camera z, `[start, end]`: the pyramid's level 0 (at most 8 bytes a
+/// pixel in [`Segments`]). Its [`Bounds`] (one pixel's four bounds are two numbers twice) are
+/// made when read, so it takes at most 8 bytes a pixel where they took 16. A pixel with no
+/// segment and no start stored reads as `[0, -inf]`: [`PixelDepths::miss`] and the slab test
+/// treat it as [`PixelDepths::NONE`], and in [`Bounds`] it differs only in the start bounds of a
+/// set of pixels that all have none, which every box misses by its end bounds first. (The slab tests need the pixel's direction too, which
 /// [`View::inv_dirs`] makes from its column and row: stored per pixel, it took 12 bytes more.)
 #[derive(Clone, Copy, Debug)]
 struct PixelDepths([f32; 2]);
@@ -336,7 +342,7 @@ impl Segments {
     /// measured surfaces.
     fn fill(&mut self, rays: &FrameRays, limits: &RayLimits, resolution: f64) -> Vec<VoxelKey> {
         let inv_r = 1.0 / resolution;
-        self.fill_with(rays.size(), |v, pixels, ends, above| {
+        self.fill_with(rays.size(), limits.bounds.is_some(), |v, mut pixels, ends, above| {
             let mut last_end = [f64::NAN; 3]; // no end yet
             // A ray's segment as the pixel's depths, with its end (voxel units) if that is a
             // measured surface.
@@ -346,7 +352,7 @@ impl Segments {
                 Some((PixelDepths([(seg.start * ray.cz) as f32, (seg.end * ray.cz) as f32]), end))
             };
             let mut put = |u: usize, (depths, end): (PixelDepths, Option<[f64; 3]>)| {
-                pixels[u] = depths;
+                pixels.set(u, depths);
                 if let Some(q) = end {
                     note_end(q, &mut last_end, &mut above[u], ends);
                 }
@@ -377,15 +383,26 @@ impl Segments {
 
     /// Fills the buffers for an image of `width x height` pixels, row `v` by
     /// `fill_row(v, pixels, ends, above)`: it sets the segments of the row's `pixels` (which
-    /// start as [`PixelDepths::NONE`]) and adds the voxels of their surface ends to `ends`
-    /// with [`note_end`] (`above[u]` is column `u`'s, kept from row to row). Returns the ends.
-    fn fill_with<F>(&mut self, (width, height): (usize, usize), fill_row: F) -> Vec<VoxelKey>
+    /// start with none; with `starts` false every segment it sets must start at 0) and adds
+    /// the voxels of their surface ends to `ends` with [`note_end`] (`above[u]` is column `u`'s,
+    /// kept from row to row). Returns the ends.
+    fn fill_with<F>(&mut self, (width, height): (usize, usize), starts: bool, fill_row: F) -> Vec<VoxelKey>
     where
-        F: Fn(usize, &mut [PixelDepths], &mut Vec<VoxelKey>, &mut [[f64; 3]]) + Sync,
+        F: Fn(usize, PixelRow<'_>, &mut Vec<VoxelKey>, &mut [[f64; 3]]) + Sync,
     {
         (self.width, self.height) = (width, height);
         // Every pixel is written below, so only a change of size needs new buffers.
-        self.pixels.resize(width * height, PixelDepths::NONE);
+        self.ends.resize(width * height, f32::NEG_INFINITY);
+        if starts {
+            self.starts.resize(width * height, f32::INFINITY);
+        } else {
+            self.starts = Vec::new();
+        }
+        let start_chunks: Vec<Option<&mut [f32]>> = if starts {
+            self.starts.chunks_mut(BLOCK * width).map(Some).collect()
+        } else {
+            (0..height.div_ceil(BLOCK)).map(|_| None).collect()
+        };
         self.levels.resize_with(self.levels.len().max(1), Level::default);
         let blocks = &mut self.levels[0];
         blocks.width = width.div_ceil(BLOCK);
@@ -396,34 +413,56 @@ impl Segments {
         const { assert!(BLOCK == 4, "blocks are made from 2 x 2 ones in one step") };
         let half = width.div_ceil(2);
         let rows: Vec<Vec<VoxelKey>> = self
-            .pixels
+            .ends
             .par_chunks_mut(BLOCK * width)
+            .zip(start_chunks)
             .zip(blocks.cells.par_chunks_mut(blocks.width))
             .enumerate()
             .map_init(
                 // (`above[u]`: NaN for none, which every comparison fails.)
                 || (Vec::new(), vec![[f64::NAN; 3]; width]),
-                |(pairs, above), (chunk, (pixels, block_row))| {
+                |(pairs, above), (chunk, ((ends_of, mut starts_of), block_row))| {
                     let mut ends = Vec::new();
-                    for (dv, p) in pixels.chunks_mut(width).enumerate() {
+                    for (dv, e) in ends_of.chunks_mut(width).enumerate() {
                         // No segment unless the row's filler gives one (a fill the compiler
                         // vectorises, where filling the gaps between valid pixels took
                         // bookkeeping per pixel).
-                        p.fill(PixelDepths::NONE);
-                        fill_row(BLOCK * chunk + dv, p, &mut ends, above);
+                        e.fill(f32::NEG_INFINITY);
+                        let s = starts_of.as_deref_mut().map(|s| {
+                            let s = &mut s[dv * width..(dv + 1) * width];
+                            s.fill(f32::INFINITY);
+                            s
+                        });
+                        fill_row(BLOCK * chunk + dv, PixelRow { ends: e, starts: s }, &mut ends, above);
                     }
                     // (The last chunk may have fewer rows: a missing row pairs with its
                     // neighbour, as in `reduce_rows`.)
-                    let mut rows = pixels.chunks(width);
-                    let row0 = rows.next().expect("a chunk has a row");
+                    let rows = ends_of.len() / width;
+                    let pair = |dv: usize, out: &mut [Bounds]| {
+                        let (upper, lower) = (dv * width, (dv + 1).min(rows - 1) * width);
+                        match starts_of.as_deref() {
+                            Some(s) => reduce_rows(
+                                width,
+                                |x| Bounds::segment(s[upper + x], ends_of[upper + x]),
+                                |x| Bounds::segment(s[lower + x], ends_of[lower + x]),
+                                out,
+                            ),
+                            None => reduce_rows(
+                                width,
+                                |x| Bounds::segment(0.0, ends_of[upper + x]),
+                                |x| Bounds::segment(0.0, ends_of[lower + x]),
+                                out,
+                            ),
+                        }
+                    };
                     pairs.resize(2 * half, Bounds::NO_SEGMENT);
                     let (first, second) = pairs.split_at_mut(half);
-                    reduce_rows(row0, rows.next().unwrap_or(row0), first);
-                    if let Some(row2) = rows.next() {
-                        reduce_rows(row2, rows.next().unwrap_or(row2), second);
-                        reduce_rows(first, second, block_row);
+                    pair(0, first);
+                    if rows > 2 {
+                        pair(2, second);
+                        reduce_rows(half, |x| first[x], |x| second[x], block_row);
                     } else {
-                        reduce_rows(first, first, block_row);
+                        reduce_rows(half, |x| first[x], |x| first[x], block_row);
                     }
                     ends
                 },
@@ -432,6 +471,12 @@ impl Segments {
         let ends = rows.concat();
         self.build_pyramid();
         ends
+    }
+
+    /// Pixel `i`'s segment (row by row).
+    #[inline(always)]
+    fn pixel(&self, i: usize) -> PixelDepths {
+        PixelDepths([self.starts.get(i).copied().unwrap_or(0.0), self.ends[i]])
     }
 
     /// Largest end depth over all pixels (`None` without segments).
@@ -450,7 +495,7 @@ impl Segments {
         if k < 2 {
             for v in v0..v1 + 1 {
                 for u in u0..u1 + 1 {
-                    b = b.union(self.pixels[v * self.width + u].into());
+                    b = b.union(self.pixel(v * self.width + u).into());
                 }
             }
             return b;
@@ -480,7 +525,8 @@ impl Segments {
             next.cells.resize(nw * nh, Bounds::NO_SEGMENT);
             next.cells.par_chunks_mut(nw).zip(prev.cells.par_chunks(2 * w)).for_each(|(row, pair)| {
                 let (upper, lower) = pair.split_at(w);
-                reduce_rows(upper, if lower.is_empty() { upper } else { lower }, row);
+                let lower = if lower.is_empty() { upper } else { lower };
+                reduce_rows(w, |x| upper[x], |x| lower[x], row);
             });
             h = nh;
             k += 1;
@@ -489,14 +535,33 @@ impl Segments {
     }
 }
 
-/// One row of the next pyramid level from two rows of this one (`lower` is `upper` again for
-/// an odd last row; an odd last column pairs with itself).
-fn reduce_rows<T: Copy + Into<Bounds>>(upper: &[T], lower: &[T], out: &mut [Bounds]) {
-    let w = upper.len();
-    let b = |row: &[T], x: usize| -> Bounds { row[x].into() };
+/// One row of the next pyramid level from two rows of this one, `w` wide, read by `upper(x)`
+/// and `lower(x)` (`lower` is `upper` again for an odd last row; an odd last column pairs with
+/// itself).
+#[inline(always)]
+fn reduce_rows(w: usize, upper: impl Fn(usize) -> Bounds, lower: impl Fn(usize) -> Bounds, out: &mut [Bounds]) {
     for (x, cell) in out.iter_mut().enumerate() {
         let x1 = (2 * x + 1).min(w - 1);
-        *cell = b(upper, 2 * x).union(b(upper, x1)).union(b(lower, 2 * x)).union(b(lower, x1));
+        *cell = upper(2 * x).union(upper(x1)).union(lower(2 * x)).union(lower(x1));
+    }
+}
+
+/// One row of [`Segments`]' pixels, as [`Segments::fill_with`] hands it to be filled.
+struct PixelRow<'a> {
+    ends: &'a mut [f32],
+    /// `None` where every segment starts at the camera.
+    starts: Option<&'a mut [f32]>,
+}
+
+impl PixelRow<'_> {
+    /// Sets pixel `u`'s segment.
+    #[inline(always)]
+    fn set(&mut self, u: usize, depths: PixelDepths) {
+        self.ends[u] = depths.0[1];
+        match &mut self.starts {
+            Some(s) => s[u] = depths.0[0],
+            None => debug_assert_eq!(depths.0[0], 0.0, "a segment not from the camera, with no starts kept"),
+        }
     }
 }
 
@@ -982,7 +1047,7 @@ impl<'a> View<'a> {
         let lo: [f32; 3] = std::array::from_fn(|a| (key[a] as f64 * r - self.origin[a]) as f32);
         let hi: [f32; 3] = std::array::from_fn(|a| ((key[a] + 1) as f64 * r - self.origin[a]) as f32);
         let crosses = |u: usize, v: usize| {
-            slabs_cross(&[self.seg.pixels[v * self.seg.width + u]], &self.inv_dirs(u, v), &lo, &hi)[0]
+            slabs_cross(&[self.seg.pixel(v * self.seg.width + u)], &self.inv_dirs(u, v), &lo, &hi)[0]
         };
         // Most undecided voxels hold a surface, and the ray through the middle of their image
         // ends inside them: try it first.
@@ -1006,7 +1071,7 @@ impl<'a> View<'a> {
         }
         // Then every pixel, skipping blocks of pixels whose segments all miss the voxel's depths.
         let (k, blocks) = (BLOCK.trailing_zeros() as usize, &self.seg.levels[0]);
-        let (pixels, width, (z_near, z_far)) = (&self.seg.pixels, self.seg.width, (footprint.z_near, footprint.z_far));
+        let (seg, width, (z_near, z_far)) = (self.seg, self.seg.width, (footprint.z_near, footprint.z_far));
         (rect.v0 >> k..(rect.v1 >> k) + 1).any(|bv| {
             (rect.u0 >> k..(rect.u1 >> k) + 1).any(|bu| {
                 let cell = &blocks.cells[bv * blocks.width + bu];
@@ -1019,10 +1084,12 @@ impl<'a> View<'a> {
                 // compares where the slab test is a dozen operations, and most pixels here end
                 // in front of the voxel), then the slab tests of those left, side by side.
                 (v0..v1).any(|v| {
-                    let row = &pixels[v * width..];
-                    let lanes: [PixelDepths; BLOCK] = std::array::from_fn(|j| match row.get(u0 + j) {
-                        Some(p) if u0 + j < u1 && !p.miss(z_near, z_far) => *p,
-                        _ => PixelDepths::NONE,
+                    let lanes: [PixelDepths; BLOCK] = std::array::from_fn(|j| {
+                        match u0 + j < u1 {
+                            true => Some(seg.pixel(v * width + u0 + j)).filter(|p| !p.miss(z_near, z_far)),
+                            false => None,
+                        }
+                        .unwrap_or(PixelDepths::NONE)
                     });
                     lanes.iter().any(|p| p.0[0] <= p.0[1])
                         && slabs_cross(&lanes, &self.inv_dirs(u0, v), &lo, &hi).contains(&true)
@@ -1176,7 +1243,7 @@ pub(super) mod tests {
                     for bu in 0..blocks.width {
                         let crossing = (bv * BLOCK..((bv + 1) * BLOCK).min(seg.height)).any(|v| {
                             (bu * BLOCK..((bu + 1) * BLOCK).min(seg.width)).any(|u| {
-                                slabs_cross(&[seg.pixels[v * seg.width + u]], &view.inv_dirs(u, v), &lo, &hi)[0]
+                                slabs_cross(&[seg.pixel(v * seg.width + u)], &view.inv_dirs(u, v), &lo, &hi)[0]
                             })
                         });
                         let out = view.block_misses(bu, bv, &blocks.cells[bv * blocks.width + bu], &lo, &hi);

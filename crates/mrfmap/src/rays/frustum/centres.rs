@@ -111,20 +111,22 @@ fn fill_centres(seg: &mut Segments, rays: &FrameRays, limits: &RayLimits) {
     let max_range2 = max_range * max_range;
     let xs: Vec<f32> = camera.xs.iter().map(|&x| x as f32).collect();
     // (No ends: this model finds its surfaces per voxel.)
-    let ends = seg.fill_with(rays.size(), |v, pixels, _, _| {
+    let ends = seg.fill_with(rays.size(), true, |v, pixels, _, _| {
         let y = camera.ys[v];
         let y2 = (y * y + 1.0) as f32;
         // The reading or the cut are computed both and one is picked, with no branch, so that
         // the loop runs in lanes (with a square root and a division only where the ray is cut,
         // it ran a pixel at a time). A reading is within the max range when `z |(x, y, 1)|`
         // is: compared squared. `0 < z < inf` is `DepthImage::is_valid`, in compares only.
-        for ((px, &z), &x) in pixels.iter_mut().zip(depth.row(v as u32)).zip(&xs) {
+        let starts = pixels.starts.expect("kept: the centres model's pixels start with a flag");
+        for (((end, start), &z), &x) in pixels.ends.iter_mut().zip(starts.iter_mut()).zip(depth.row(v as u32)).zip(&xs)
+        {
             let norm2 = x * x + y2;
             let cut = max_range / norm2.sqrt();
             let within = z * z * norm2 <= max_range2;
             let valid = z > 0.0 && z < f32::INFINITY;
             let d = if within { [SURFACE, z] } else { [NO_SURFACE, cut] };
-            *px = PixelDepths(if valid { d } else { PixelDepths::NONE.0 });
+            [*start, *end] = if valid { d } else { PixelDepths::NONE.0 };
         }
     });
     debug_assert!(ends.is_empty());
@@ -234,7 +236,6 @@ impl View<'_> {
         let half_r = 0.5 * self.resolution;
         let first = self.point_at(b.lo.map(|k| k as f64 + 0.5));
         let offset = |a: usize, k: i32| ((k as f64 + 0.5) * self.resolution - self.origin[a]).abs();
-        let pixels = &self.seg.pixels;
         let (u_lo, u_hi) = (rect.u0 as f64 - 0.5, rect.u1 as f64 + 0.5);
         let (v_lo, v_hi) = (rect.v0 as f64 - 0.5, rect.v1 as f64 + 0.5);
         let n = b.hi[0] - b.lo[0];
@@ -255,7 +256,7 @@ impl View<'_> {
                     // casts to 0.)
                     let nearest = |x: f64, lo: usize, hi: usize| ((x + 0.5).max(0.0) as u32 as usize).clamp(lo, hi);
                     let (u, v) = (nearest(u, rect.u0, rect.u1), nearest(v, rect.v0, rect.v1));
-                    let PixelDepths([surface, depth]) = pixels[v * self.seg.width + u];
+                    let PixelDepths([surface, depth]) = self.seg.pixel(v * self.seg.width + u);
                     let (cz, depth) = (p[2], depth as f64);
                     free_bits |= ((inside && cz < depth) as u64) << x;
                     // `|depth - cz| <= r / 2 cz / max |o_a|`, multiplied out.

@@ -135,6 +135,9 @@ fn main() {
                 mrfmap::limits::env_max_memory()?;
             }
         }
+        // (Before any thread is started: a thread takes its arena at its first allocation.)
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        limit_malloc_arenas(cli.threads.map_or(cores, |n| n as usize));
         if let Some(n) = cli.threads {
             rayon::ThreadPoolBuilder::new().num_threads(n as usize).build_global()?;
         }
@@ -176,3 +179,26 @@ fn main() {
         std::process::exit(1);
     }
 }
+
+/// glibc's malloc gives each thread that allocates an arena of its own, up to eight per core,
+/// and memory freed into one arena is not reused by another: a build on two threads, with the
+/// next frame read on a third, peaked 1.5-2 MB higher (5% of a small map's process) than with
+/// one arena per computing thread, at the same speed (BENCHMARKS.md, session 31). So this
+/// process keeps one arena per thread it computes on (at least two).
+#[cfg(all(target_os = "linux", target_env = "gnu"))]
+fn limit_malloc_arenas(threads: usize) {
+    use std::ffi::c_int;
+    unsafe extern "C" {
+        fn mallopt(param: c_int, value: c_int) -> c_int;
+    }
+    const M_ARENA_MAX: c_int = -8; // glibc's malloc.h
+    // SAFETY: `mallopt` sets one of the allocator's parameters and is safe to call at any
+    // time (glibc takes its lock); an arena limit only decides where later allocations go.
+    unsafe {
+        mallopt(M_ARENA_MAX, threads.clamp(2, 1024) as c_int);
+    }
+}
+
+/// (Other allocators share their arenas on their own terms.)
+#[cfg(not(all(target_os = "linux", target_env = "gnu")))]
+fn limit_malloc_arenas(_threads: usize) {}

@@ -351,30 +351,36 @@ impl Segments {
                 let end = seg.hits_surface.then(|| [0, 1, 2].map(|a| (ray.origin[a] + seg.end * ray.dir[a]) * inv_r));
                 Some((PixelDepths([(seg.start * ray.cz) as f32, (seg.end * ray.cz) as f32]), end))
             };
-            let mut put = |u: usize, (depths, end): (PixelDepths, Option<[f64; 3]>)| {
-                pixels.set(u, depths);
-                if let Some(q) = end {
-                    note_end(q, &mut last_end, &mut above[u], ends);
-                }
-            };
             // Without bounds, a reading within the max range is the segment from the camera
             // to it ([`RayLimits::hit_miss_segment`]): most pixels, computed in lanes (the
-            // per-pixel rays were a third of a projected frame at 0.05 m).
+            // per-pixel rays were a third of a projected frame at 0.05 m). Every segment then
+            // starts at the camera: only its end is kept.
             let max_range = limits.max_range.unwrap_or(f64::INFINITY);
             let v = v as u32;
-            let plain = limits.bounds.is_none()
-                && rays.row_plain(v, max_range, inv_r, |u, plain| match plain {
-                    Some((z, end)) => put(u, (PixelDepths([0.0, z]), Some(end))),
-                    None => {
-                        if let Some(s) = rays.ray(u as u32, v).as_ref().and_then(segment) {
-                            put(u, s);
-                        }
+            let plain = limits.bounds.is_none() && {
+                let row_ends = &mut *pixels.ends;
+                rays.row_plain(v, max_range, inv_r, |u, plain| {
+                    let (z, end) = match plain {
+                        Some((z, end)) => (z, Some(end)),
+                        None => match rays.ray(u as u32, v).as_ref().and_then(segment) {
+                            Some((depths, end)) => (depths.0[1], end),
+                            None => return,
+                        },
+                    };
+                    row_ends[u] = z;
+                    if let Some(q) = end {
+                        note_end(q, &mut last_end, &mut above[u], ends);
                     }
-                });
+                })
+            };
             if !plain {
                 for ray in rays.row(v) {
-                    if let Some(s) = segment(&ray) {
-                        put(ray.u as usize, s);
+                    if let Some((depths, end)) = segment(&ray) {
+                        let u = ray.u as usize;
+                        pixels.set(u, depths);
+                        if let Some(q) = end {
+                            note_end(q, &mut last_end, &mut above[u], ends);
+                        }
                     }
                 }
             }

@@ -18,7 +18,8 @@ struct Cli {
     /// traced (RUST_LOG, when set, decides instead).
     #[arg(long, short, global = true, conflicts_with = "quiet")]
     verbose: bool,
-    /// Worker threads (default: all cores; at most 1024).
+    /// Worker threads (default: all cores; at most 1024). With two or more, `build` reads
+    /// the next frame on a thread of its own while it integrates this one.
     #[arg(long, global = true, value_parser = clap::value_parser!(u32).range(1..=1024))]
     threads: Option<u32>,
     /// Memory a command may plan to use, e.g. 8G (default: MRFMAP_MAX_MEMORY, else three

@@ -1,6 +1,7 @@
-//! Reading the next frame while the engine integrates this one: decoding a PNG depth image
-//! takes a fifth to a third of a log-odds frame's time on one core, and with a second core the
-//! engine leaves it idle between its parallel parts.
+//! Reading the next frame while the engine integrates this one: decoding a 640 x 480 PNG
+//! depth image takes about a fifth of the time a log-odds frame at 0.05 m takes to integrate,
+//! and with a second core the engine leaves that core idle between its parallel parts (a
+//! build of icl-livingroom1 on two threads: 0.71x the time, BENCHMARKS.md session 31).
 
 use std::sync::mpsc;
 

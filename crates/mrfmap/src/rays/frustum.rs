@@ -15,7 +15,9 @@
 //!    through it and each voxel covers a pixel centre ([`Seen::All`]: all its voxels are
 //!    crossed); or neither ([`Seen::Some`]: split it).
 //! 3. A single voxel that stays undecided gets the exact test: does the segment of some pixel
-//!    in its footprint pass through it (slab test)?
+//!    in its footprint pass through it (slab test)? Pixels go in blocks of 4 x 4; a block is
+//!    ruled out first by its depth bounds, then by one slab test of the box of its rays'
+//!    directions ([`View::block_misses`]), and only then are its rows tested in lanes.
 //! 4. Undecided bricks that few pixels see, or that lie where voxels are smaller than a pixel
 //!    (so no box can be decided whole), have their rays walked within the brick instead.
 //!

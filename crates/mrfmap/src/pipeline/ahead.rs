@@ -8,10 +8,11 @@ use std::sync::mpsc;
 use crate::error::Result;
 
 /// Calls `consume` with the readings `read(i)` of `indices` in order (each with its index),
-/// read one ahead on a thread of their own when the thread pool has more than one thread (at
-/// most two readings wait besides the one being integrated); on one thread, read in turn, so
+/// read one ahead on a thread of their own when the thread pool has more than one thread (one
+/// reading waits, read, besides the one being integrated); on one thread, read in turn, so
 /// that `--threads 1` uses one core. Reading stops at the first error, which is passed on, and
-/// when `consume` returns early.
+/// when `consume` returns early. (A reader that panicked ends the readings early, and the
+/// panic is raised again when `consume` returns.)
 pub fn read_ahead<T: Send, R>(
     indices: &[usize],
     read: impl Fn(usize) -> Result<T> + Sync,

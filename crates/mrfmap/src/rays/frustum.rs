@@ -50,8 +50,8 @@ pub struct CrossedVoxels {
 }
 
 /// Finds the voxels a depth image's rays cross by projection (see the module documentation).
-/// It keeps its per-pixel buffers (about 5 bytes per pixel, 9 with bounds) from one frame to the next:
-/// allocating them afresh cost a tenth of the time in page faults.
+/// It keeps its per-pixel buffers (about 5 bytes per pixel, 9 with bounds) from one frame to
+/// the next: allocating them afresh cost a tenth of the time in page faults.
 ///
 /// ```
 /// use mrfmap::frames::{Camera, DepthImage, Frame, look_at};
@@ -252,13 +252,14 @@ struct Segments {
     levels: Vec<Level>,
 }
 
-/// One pixel's segment in camera z, `[start, end]`: the pyramid's level 0 (at most 8 bytes a
-/// pixel in [`Segments`]). Its [`Bounds`] (one pixel's four bounds are two numbers twice) are
-/// made when read, so it takes at most 8 bytes a pixel where they took 16. A pixel with no
-/// segment and no start stored reads as `[0, -inf]`: [`PixelDepths::miss`] and the slab test
-/// treat it as [`PixelDepths::NONE`], and in [`Bounds`] it differs only in the start bounds of a
-/// set of pixels that all have none, which every box misses by its end bounds first. (The slab tests need the pixel's direction too, which
-/// [`View::inv_dirs`] makes from its column and row: stored per pixel, it took 12 bytes more.)
+/// One pixel's segment in camera z, `[start, end]`: the pyramid's level 0. Its [`Bounds`]
+/// (one pixel's four bounds are two numbers twice) are made when read, so it takes at most 8
+/// bytes a pixel in [`Segments`] where they took 16. A pixel with no segment and no start
+/// stored reads as `[0, -inf]`: [`PixelDepths::miss`] and the slab test treat it as
+/// [`PixelDepths::NONE`], and in [`Bounds`] it differs only in the start bounds of a set of
+/// pixels that all have none, which every box misses by its end bounds first. (The slab tests
+/// need the pixel's direction too, which [`View::inv_dirs`] makes from its column and row:
+/// stored per pixel, it took 12 bytes more.)
 #[derive(Clone, Copy, Debug)]
 struct PixelDepths([f32; 2]);
 

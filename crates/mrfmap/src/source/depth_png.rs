@@ -116,6 +116,27 @@ mod tests {
         assert!(e.contains("rt.png") && e.contains("5x3") && e.contains("640x480"), "{e}");
     }
 
+    /// A file cut short inside its pixel data is an error naming the file, not a panic or an
+    /// image with rows of zeros.
+    #[test]
+    fn refuses_a_truncated_image() {
+        let tmp = tempfile::tempdir().unwrap();
+        let mut img = DepthImage::new(64, 48);
+        for v in 0..48 {
+            for u in 0..64 {
+                img.set(u, v, 0.5 + (u * 7 + v * 13) as f32 * 0.01);
+            }
+        }
+        let p = tmp.path().join("whole.png");
+        write_depth_png(&p, &img, 5000.0).unwrap();
+        let bytes = std::fs::read(&p).unwrap();
+        assert_eq!(read_depth_png(&p, 5000.0, None).unwrap().data().len(), 64 * 48);
+        let cut = tmp.path().join("cut.png");
+        std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
+        let e = read_depth_png(&cut, 5000.0, None).unwrap_err().to_string();
+        assert!(e.contains("cut.png") && e.contains("unreadable PNG"), "{e}");
+    }
+
     #[test]
     fn refuses_8_bit_and_garbage() {
         let tmp = tempfile::tempdir().unwrap();

@@ -342,51 +342,17 @@ impl Bounds {
 
 impl Segments {
     /// Fills the buffers for `frame`; returns the voxels of the segment ends that are
-    /// measured surfaces.
+    /// measured surfaces. Each row runs in [`segments_row_avx2`] on a processor with AVX2.
     fn fill(&mut self, rays: &FrameRays, limits: &RayLimits, resolution: f64) -> Vec<VoxelKey> {
-        let inv_r = 1.0 / resolution;
-        self.fill_with(rays.size(), limits.bounds.is_some(), |v, mut pixels, ends, above| {
-            let mut last_end = [f64::NAN; 3]; // no end yet
-            // A ray's segment as the pixel's depths, with its end (voxel units) if that is a
-            // measured surface.
-            let segment = |ray: &PixelRay| {
-                let seg = limits.hit_miss_segment(ray, resolution)?;
-                let end = seg.hits_surface.then(|| [0, 1, 2].map(|a| (ray.origin[a] + seg.end * ray.dir[a]) * inv_r));
-                Some((PixelDepths([(seg.start * ray.cz) as f32, (seg.end * ray.cz) as f32]), end))
-            };
-            // Without bounds, a reading within the max range is the segment from the camera
-            // to it ([`RayLimits::hit_miss_segment`]): most pixels, computed in lanes (the
-            // per-pixel rays were a third of a projected frame at 0.05 m). Every segment then
-            // starts at the camera: only its end is kept.
-            let max_range = limits.max_range.unwrap_or(f64::INFINITY);
-            let v = v as u32;
-            let plain = limits.bounds.is_none() && {
-                let row_ends = &mut *pixels.ends;
-                rays.row_plain(v, max_range, inv_r, |u, plain| {
-                    let (z, end) = match plain {
-                        Some((z, end)) => (z, Some(end)),
-                        None => match rays.ray(u as u32, v).as_ref().and_then(segment) {
-                            Some((depths, end)) => (depths.0[1], end),
-                            None => return,
-                        },
-                    };
-                    row_ends[u] = z;
-                    if let Some(q) = end {
-                        note_end(q, &mut last_end, &mut above[u], ends);
-                    }
-                })
-            };
-            if !plain {
-                for ray in rays.row(v) {
-                    if let Some((depths, end)) = segment(&ray) {
-                        let u = ray.u as usize;
-                        pixels.set(u, depths);
-                        if let Some(q) = end {
-                            note_end(q, &mut last_end, &mut above[u], ends);
-                        }
-                    }
-                }
+        #[cfg(target_arch = "x86_64")]
+        let avx2 = std::is_x86_feature_detected!("avx2");
+        self.fill_with(rays.size(), limits.bounds.is_some(), |v, pixels, ends, above| {
+            #[cfg(target_arch = "x86_64")]
+            if avx2 {
+                // SAFETY: the processor has AVX2, checked above.
+                return unsafe { segments_row_avx2(rays, limits, resolution, v, pixels, ends, above) };
             }
+            segments_row_baseline(rays, limits, resolution, v, pixels, ends, above)
         })
     }
 
@@ -543,6 +509,81 @@ impl Segments {
         self.levels.truncate(k + 1);
     }
 }
+
+/// Defines under `$name` the filling of row `v` of [`Segments`] (see [`Segments::fill`]): one
+/// source for the copy built for the binary's baseline and the copy built for AVX2, whose
+/// closures and lane loops (the plain pixels' ranges, depths and ends, [`FrameRays::row_plain`])
+/// are compiled with its features (closures in a shared inlined body would not be). The same
+/// values bit for bit: no fused multiply-adds.
+macro_rules! segments_row {
+    ($(#[$attr:meta])* $name:ident) => {
+        $(#[$attr])*
+        fn $name(
+            rays: &FrameRays,
+            limits: &RayLimits,
+            resolution: f64,
+            v: usize,
+            mut pixels: PixelRow<'_>,
+            ends: &mut Vec<VoxelKey>,
+            above: &mut [[f64; 3]],
+        ) {
+            let inv_r = 1.0 / resolution;
+            let mut last_end = [f64::NAN; 3]; // no end yet
+            // A ray's segment as the pixel's depths, with its end (voxel units) if that is a
+            // measured surface.
+            let segment = |ray: &PixelRay| {
+                let seg = limits.hit_miss_segment(ray, resolution)?;
+                let end = seg.hits_surface.then(|| [0, 1, 2].map(|a| (ray.origin[a] + seg.end * ray.dir[a]) * inv_r));
+                Some((PixelDepths([(seg.start * ray.cz) as f32, (seg.end * ray.cz) as f32]), end))
+            };
+            // Without bounds, a reading within the max range is the segment from the camera
+            // to it ([`RayLimits::hit_miss_segment`]): most pixels, computed in lanes (the
+            // per-pixel rays were a third of a projected frame at 0.05 m). Every segment then
+            // starts at the camera: only its end is kept.
+            let max_range = limits.max_range.unwrap_or(f64::INFINITY);
+            let v = v as u32;
+            let plain = limits.bounds.is_none() && {
+                let row_ends = &mut *pixels.ends;
+                rays.row_plain(v, max_range, inv_r, |u, plain| {
+                    let (z, end) = match plain {
+                        Some((z, end)) => (z, Some(end)),
+                        None => match rays.ray(u as u32, v).as_ref().and_then(segment) {
+                            Some((depths, end)) => (depths.0[1], end),
+                            None => return,
+                        },
+                    };
+                    row_ends[u] = z;
+                    if let Some(q) = end {
+                        note_end(q, &mut last_end, &mut above[u], ends);
+                    }
+                })
+            };
+            if !plain {
+                for ray in rays.row(v) {
+                    if let Some((depths, end)) = segment(&ray) {
+                        let u = ray.u as usize;
+                        pixels.set(u, depths);
+                        if let Some(q) = end {
+                            note_end(q, &mut last_end, &mut above[u], ends);
+                        }
+                    }
+                }
+            }
+        }
+    };
+}
+
+segments_row!(
+    /// [`segments_row!`] for any processor.
+    segments_row_baseline
+);
+
+segments_row!(
+    /// [`segments_row!`] compiled for AVX2.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    segments_row_avx2
+);
 
 /// One row of the next pyramid level from two rows of this one, `w` wide, read by `upper(x)`
 /// and `lower(x)` (`lower` is `upper` again for an odd last row; an odd last column pairs with
@@ -1221,6 +1262,46 @@ pub(super) mod tests {
             .flat_map(|(b, m)| mask_slots(m).map(|s| b.voxel(s)).collect::<Vec<_>>())
             .collect();
         (set, c.ends.into_iter().collect())
+    }
+
+    /// The AVX2 copy of a row's filling gives the baseline copy's segments and ends bit for bit,
+    /// with and without a max range and bounds. (Every other test runs the copy this machine
+    /// picks; this one runs both.)
+    #[test]
+    fn both_copies_of_a_segments_row_agree() {
+        #[cfg(target_arch = "x86_64")]
+        if std::is_x86_feature_detected!("avx2") {
+            let mut rng = Rng::new(5);
+            for case in 0..30 {
+                let frame = random_frame(&mut rng);
+                let r = rng.range(0.03, 0.25);
+                let limits = match case % 3 {
+                    0 => RayLimits::default(),
+                    1 => RayLimits { max_range: Some(rng.range(0.5, 3.0)), bounds: None },
+                    _ => RayLimits {
+                        max_range: None,
+                        bounds: Some(Aabb::new([-1.0, -1.5, -0.7], [1.5, 1.2, 1.0]).unwrap()),
+                    },
+                };
+                let mut cache = CameraRays::default();
+                let rays = FrameRays::with_camera_rays(&frame, &mut cache);
+                let (mut base, mut fast) = (Segments::default(), Segments::default());
+                let starts = limits.bounds.is_some();
+                let base_ends = base
+                    .fill_with(rays.size(), starts, |v, p, e, a| segments_row_baseline(&rays, &limits, r, v, p, e, a));
+                // SAFETY: the processor has AVX2, checked above.
+                let fast_ends = fast.fill_with(rays.size(), starts, |v, p, e, a| unsafe {
+                    segments_row_avx2(&rays, &limits, r, v, p, e, a)
+                });
+                let bits = |x: &[f32]| x.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+                assert_eq!(bits(&base.ends), bits(&fast.ends), "case {case}");
+                assert_eq!(bits(&base.starts), bits(&fast.starts), "case {case}");
+                assert_eq!(base_ends, fast_ends, "case {case}");
+                assert!(base.ends.iter().any(|e| e.is_finite()), "case {case}: no segments");
+            }
+            return;
+        }
+        eprintln!("skipped: this processor has no AVX2, only the baseline copy runs");
     }
 
     /// A block that [`View::block_misses`] rules out has no pixel whose slab test passes, for

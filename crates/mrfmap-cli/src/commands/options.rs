@@ -13,7 +13,7 @@ use mrfmap::frames::{Frame, NoiseModel, Poly, RangeScan};
 use mrfmap::inference::MapOutput;
 use mrfmap::inference::{Allocation, BuildOptions, EngineConfig, EngineKind, KeyframeSelection, Marking};
 use mrfmap::map::Aabb;
-use mrfmap::pipeline::{BuildReport, Built, Reading, Readings, build_engine};
+use mrfmap::pipeline::{BuildReport, Built, Reading, Readings, build_engine, read_ahead};
 #[cfg(feature = "bags")]
 use mrfmap::pipeline::{check_posed, stream_bag};
 #[cfg(feature = "bags")]
@@ -363,22 +363,23 @@ pub fn check_output_folder(path: &std::path::Path) -> Result<()> {
     Ok(())
 }
 
-/// Integrates the readings `indices` (fetched through `reading`) with the engine `config`
-/// describes, with progress bars; the engine is kept ([`Built`]).
-pub fn build_engine_of<R: Reading>(
+/// Integrates the readings `indices` (fetched through `reading`, the next one while this one
+/// is integrated: [`read_ahead`]) with the engine `config` describes, with progress bars; the
+/// engine is kept ([`Built`]).
+pub fn build_engine_of<R: Reading + Send>(
     indices: &[usize],
     config: &EngineConfig,
-    mut reading: impl FnMut(usize) -> mrfmap::Result<R>,
+    reading: impl Fn(usize) -> mrfmap::Result<R> + Sync,
 ) -> Result<Built> {
-    let mut readings = indices.iter().map(|&i| reading(i).map(|r| (i, r)));
-    Ok(build_engine(config, &mut readings, Some(indices.len()), &mut Bars::default(), None)?)
+    let count = Some(indices.len());
+    Ok(read_ahead(indices, reading, |readings| build_engine(config, readings, count, &mut Bars::default(), None))?)
 }
 
 /// [`build_engine_of`], with the engine's map made.
-pub fn build_map<R: Reading>(
+pub fn build_map<R: Reading + Send>(
     indices: &[usize],
     config: &EngineConfig,
-    reading: impl FnMut(usize) -> mrfmap::Result<R>,
+    reading: impl Fn(usize) -> mrfmap::Result<R> + Sync,
 ) -> Result<BuildReport> {
     Ok(build_engine_of(indices, config, reading)?.into_report())
 }

@@ -295,7 +295,7 @@ mod tests {
 
     use nalgebra::Vector3;
 
-    use super::super::tests::{projected, random_frame};
+    use super::super::tests::{projected, random_frame, random_limits};
     use super::*;
     use crate::random::Rng;
 
@@ -367,17 +367,6 @@ mod tests {
         (free, hit)
     }
 
-    fn limits_for(case: usize, rng: &mut Rng) -> RayLimits {
-        match case % 3 {
-            0 => RayLimits::default(),
-            1 => RayLimits { max_range: Some(rng.range(0.5, 3.0)), bounds: None },
-            _ => RayLimits {
-                max_range: None,
-                bounds: Some(Aabb::new([-1.0, -1.5, -0.7], [rng.range(0.0, 2.0), 1.2, rng.range(0.0, 2.0)]).unwrap()),
-            },
-        }
-    }
-
     /// The boxes decided whole and the brick-by-brick centres give the model's definition,
     /// computed voxel by voxel: random cameras, surfaces, holes, max ranges and bounds.
     #[test]
@@ -387,7 +376,7 @@ mod tests {
         for case in 0..45 {
             let frame = random_frame(&mut rng);
             let r = rng.range(0.06, 0.2);
-            let limits = limits_for(case, &mut rng);
+            let limits = random_limits(case, &mut rng);
             let (free, hit) = centres(&frame, &limits, r);
             let (want_free, want_hit) = brute_force(&frame, &limits, r);
             let diff = free.symmetric_difference(&want_free).count() + hit.symmetric_difference(&want_hit).count();
@@ -409,7 +398,7 @@ mod tests {
         for case in 0..60 {
             let frame = random_frame(&mut rng);
             let r = rng.range(0.03, 0.1);
-            let limits = limits_for(case, &mut rng);
+            let limits = random_limits(case, &mut rng);
             let dense = super::super::dense_range(&frame.camera, r);
             let origin = frame.pose.translation.vector;
             let near_camera =

@@ -342,11 +342,7 @@ fn report(
         ("Accuracy, tolerance = the forward model's std at the peak", 1),
     ] {
         let _ = writeln!(r, "## {title}\n");
-        let _ = write!(r, "| engine |");
-        for res in &a.resolutions {
-            let _ = write!(r, " {res} m |");
-        }
-        let _ = writeln!(r, "\n|---|{}", "---|".repeat(a.resolutions.len()));
+        engine_header(&mut r, &a.resolutions, &[" m"]);
         for name in names(a) {
             let _ = write!(r, "| {name} |");
             for &res in &a.resolutions {
@@ -390,11 +386,7 @@ fn report(
                 .collect::<Vec<_>>()
                 .join(", ")
         );
-        let _ = write!(r, "| engine |");
-        for res in &a.resolutions {
-            let _ = write!(r, " {res} m: dataset's | least | largest |");
-        }
-        let _ = writeln!(r, "\n|---|{}", "---|---|---|".repeat(a.resolutions.len()));
+        engine_header(&mut r, &a.resolutions, &[" m: dataset's", "least", "largest"]);
         for name in names(a) {
             let _ = write!(r, "| {name} |");
             for &res in &a.resolutions {
@@ -427,4 +419,17 @@ fn report(
         );
     }
     r
+}
+
+/// A Markdown table's header with an engine column, then per resolution the columns `cells`
+/// (the first after the resolution), and its rule.
+fn engine_header(r: &mut String, resolutions: &[f64], cells: &[&str]) {
+    r.push_str("| engine |");
+    for res in resolutions {
+        let _ = write!(r, " {res}{} |", cells[0]);
+        for cell in &cells[1..] {
+            let _ = write!(r, " {cell} |");
+        }
+    }
+    let _ = writeln!(r, "\n|---|{}", "---|".repeat(resolutions.len() * cells.len()));
 }

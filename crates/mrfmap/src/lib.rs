@@ -48,6 +48,7 @@ pub mod pipeline;
 pub mod random;
 pub mod rays;
 pub mod source;
+mod vecmath;
 
 pub use choice::Choice;
 pub use error::{Error, Result};

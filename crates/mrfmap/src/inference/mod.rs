@@ -26,7 +26,6 @@ mod merge;
 mod mrf;
 mod options;
 mod tiles;
-mod vecmath;
 
 /// Which engine: defined with the maps, which record it.
 pub use crate::map::EngineKind;

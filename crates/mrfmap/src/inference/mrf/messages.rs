@@ -26,7 +26,7 @@
 //! form on top of it (the brute-force tests below check both).
 
 use crate::inference::sigmoid;
-use crate::inference::vecmath::ln_clamped_in_place;
+use crate::vecmath::ln_clamped_in_place;
 
 /// Incoming messages are kept in `[MU_EPS, 1 - MU_EPS]`.
 pub const MU_EPS: f64 = 1e-9;

@@ -2,8 +2,6 @@
 //! ([`super::ray_log_messages`]), and the tile's new entries, damped against its old ones; then
 //! their changes applied to the sums in tile order.
 
-use std::ops::ControlFlow;
-
 use rayon::prelude::*;
 use rustc_hash::FxHashMap;
 
@@ -13,10 +11,10 @@ use super::tiles::{CALM_TRACES, Entry, Keyframe, MAX_DAMPING_LEVEL, Tile, f32_at
 use super::{MAX_LOG_ODDS, ray_log_messages};
 use crate::frames::Intervals;
 use crate::inference::Engine;
-use crate::inference::vecmath::exp_in_place;
 use crate::inference::{logit, sigmoid};
-use crate::map::{BRICK_EDGE, BRICK_VOXELS, Brick, BrickKey, Grid, SlotMask, VoxelKey, mask_set, mask_slots};
+use crate::map::{BRICK_VOXELS, Brick, BrickKey, Grid, SlotMask, VoxelKey, mask_set, mask_slots};
 use crate::rays::{FrameRays, Walk};
+use crate::vecmath::exp_in_place;
 
 /// One tile's trace, before it is applied.
 struct Traced {
@@ -193,14 +191,7 @@ impl<'a> TileScratch<'a> {
         }
     }
 
-    /// The index of voxel `key`, added with the tile's `old` entry if new.
-    #[inline]
-    fn voxel(&mut self, key: VoxelKey, old: Option<Entry>, grid: &'a Grid<f32>) -> usize {
-        let t = self.table_or_new(key.brick(), grid);
-        self.voxel_in(t, key, old)
-    }
-
-    /// [`TileScratch::voxel`] for a voxel of table `t`'s brick.
+    /// The index of voxel `key` of table `t`'s brick, added with the tile's `old` entry if new.
     #[inline]
     fn voxel_in(&mut self, t: usize, key: VoxelKey, old: Option<Entry>) -> usize {
         let table = &mut self.tables[t];
@@ -217,6 +208,15 @@ impl<'a> TileScratch<'a> {
         i
     }
 
+    /// [`TileScratch::voxel_in`] by slot of table `t`'s brick, for a voxel no old entry names.
+    #[inline]
+    fn voxel_at(&mut self, t: usize, slot: usize) -> usize {
+        match self.tables[t].index[slot] {
+            u32::MAX => self.voxel_in(t, self.tables[t].key.voxel(slot), None),
+            i => i as usize,
+        }
+    }
+
     /// The voxels' indices by brick, then slot.
     fn sorted(&self) -> impl Iterator<Item = usize> + '_ {
         let mut order: Vec<&SlotTable> = self.tables[..self.used].iter().collect();
@@ -228,12 +228,12 @@ impl<'a> TileScratch<'a> {
 /// Per-ray buffers: one entry per voxel the ray crosses, in order.
 #[derive(Default)]
 struct RayScratch {
-    slots: Vec<usize>,
-    /// Where the ray enters and leaves the voxel (camera z-depth, m), and its length inside
-    /// (voxel edges).
+    /// The voxel's index in [`TileScratch::voxels`].
+    slots: Vec<u32>,
+    /// Where the ray enters and leaves the voxel (camera z-depth, m). (Its length inside is
+    /// their difference over the ray's `cz`: one buffer fewer to fill per crossing.)
     z0: Vec<f64>,
     z1: Vec<f64>,
-    edges: Vec<f64>,
     /// The cavity (log-odds), then its odds.
     cavity: Vec<f64>,
     nu: Intervals,
@@ -242,7 +242,7 @@ struct RayScratch {
 
 impl RayScratch {
     fn clear(&mut self) {
-        for v in [&mut self.z0, &mut self.z1, &mut self.edges, &mut self.cavity] {
+        for v in [&mut self.z0, &mut self.z1, &mut self.cavity] {
             v.clear();
         }
         self.slots.clear();
@@ -362,7 +362,6 @@ macro_rules! tile_trace {
                 // so that rounding where a walk starts cannot skip into a brick's first voxel.
                 let mut z_first = f64::INFINITY;
                 let z_near = tile.z_near as f64 - r;
-                let edge = r * BRICK_EDGE as f64;
                 let depth = &kf.frame.depth;
                 let stride = self.tile_stride(kf, &cols, &rows);
                 for v0 in rows.clone().step_by(stride as usize) {
@@ -385,51 +384,40 @@ macro_rules! tile_trace {
                         // loop of its own, which the processor overlaps across voxels (interleaved,
                         // each step of a voxel waited for the last).
                         scratch.ray.clear();
-                        // (Walks fail only for a non-finite ray, which has no voxels.)
-                        let (Some(bricks), Some(voxels)) =
-                            (Walk::new(ray.origin, ray.dir, edge), Walk::new(ray.origin, ray.dir, r))
-                        else {
-                            continue;
-                        };
-                        // (No allocated brick lies before `z_near`: the walk starts there.)
-                        bricks.crossings(seg.start.max(z_near / cz), seg.end, |b| {
-                            let key = BrickKey(b.key.0);
-                            let Some((table, Some(sums))) = scratch.table_of(key, &self.sums) else {
-                                return ControlFlow::Continue(()); // unallocated: skipped, as the reference does
-                            };
-                            z_first = z_first.min(b.s_in * cz);
-                            voxels.crossings(b.s_in, b.s_out, |c| {
-                                // A brick's walk starts on its face, and rounding may start it in the
-                                // voxel before, for a sliver of a length (8% of the crossings at
-                                // 0.02 m). Often that voxel is the one the ray has just crossed, which
-                                // its factor would then hold twice; any voxel in its chain is a place
-                                // the surface could be. A sliver carries no length: it is skipped.
-                                if c.length() * inv_r < SLIVER {
-                                    return ControlFlow::Continue(());
+                        // (A walk fails only for a non-finite ray, which has no voxels.)
+                        let Some(walk) = Walk::new(ray.origin, ray.dir, r) else { continue };
+                        // (No allocated brick lies before `z_near`: the walk starts there. Bricks
+                        // that are not allocated are skipped, as the reference does.)
+                        walk.crossings_in_bricks(
+                            seg.start.max(z_near / cz),
+                            seg.end,
+                            scratch,
+                            |scratch, key, s| {
+                                let (table, sums) = scratch.table_of(key, &self.sums)?;
+                                let sums = sums?; // (a table kept for old entries in a freed brick)
+                                z_first = z_first.min(s * cz);
+                                Some((table, sums))
+                            },
+                            |scratch, (table, sums), slot, s_in, s_out| {
+                                // A crossing shorter than 1e-9 voxel edges (a ray within rounding
+                                // of a voxel's edge, or where a walk starts again at a brick face)
+                                // carries no length: it is skipped.
+                                let edges = (s_out - s_in) * inv_r;
+                                if edges < SLIVER {
+                                    return;
                                 }
-                                // (A voxel of another brick: rounding at a brick face.)
-                                let inside = c.key.brick() == key;
-                                let s = if inside { Some(&sums[c.key.slot()]) } else { self.sums.get(c.key) };
-                                if let Some(&s) = s {
-                                    let slot = if inside {
-                                        scratch.voxel_in(table, c.key, None)
-                                    } else {
-                                        scratch.voxel(c.key, None, &self.sums)
-                                    };
-                                    let voxel = &mut scratch.voxels[slot];
-                                    voxel.seen = s;
-                                    let edges = c.length() * inv_r;
-                                    let buf = &mut scratch.ray;
-                                    buf.slots.push(slot);
-                                    buf.z0.push(c.s_in * cz);
-                                    buf.z1.push(c.s_out * cz);
-                                    buf.edges.push(edges);
-                                    buf.cavity.push((s - voxel.own * edges as f32) as f64);
-                                }
-                                ControlFlow::Continue(())
-                            });
-                            ControlFlow::Continue(())
-                        });
+                                let s = sums[slot];
+                                let i = scratch.voxel_at(table, slot);
+                                let voxel = &mut scratch.voxels[i];
+                                voxel.seen = s;
+                                let cavity = (s - voxel.own * edges as f32) as f64;
+                                let buf = &mut scratch.ray;
+                                buf.slots.push(i as u32);
+                                buf.z0.push(s_in * cz);
+                                buf.z1.push(s_out * cz);
+                                buf.cavity.push(cavity);
+                            },
+                        );
                         let ray_buf = &mut scratch.ray;
                         if ray_buf.slots.is_empty() {
                             continue;
@@ -448,10 +436,13 @@ macro_rules! tile_trace {
                         let nu = &ray_buf.nu.density;
                         let first = nu.iter().position(|&nu| nu > 0.0).unwrap_or(nu.len());
                         let free = if first < nu.len() || beyond > 0.0 { logit(MSG_EPS) } else { 0.0 };
+                        // (A voxel's length in voxel edges, weighted: its z-depths' difference.)
+                        let per_z = weight * inv_r / cz;
                         for j in 0..first {
-                            let voxel = &mut scratch.voxels[ray_buf.slots[j]];
-                            voxel.length += weight * ray_buf.edges[j];
-                            voxel.sum += weight * ray_buf.edges[j] * free;
+                            let voxel = &mut scratch.voxels[ray_buf.slots[j] as usize];
+                            let length = per_z * (ray_buf.z1[j] - ray_buf.z0[j]);
+                            voxel.length += length;
+                            voxel.sum += length * free;
                         }
                         let odds = &mut ray_buf.cavity[first..];
                         for x in odds.iter_mut() {
@@ -460,9 +451,10 @@ macro_rules! tile_trace {
                         exp_in_place(odds);
                         ray_log_messages(odds, &nu[first..], beyond, -logit(MSG_EPS), &mut ray_buf.out);
                         for (j, m) in (first..).zip(&ray_buf.out) {
-                            let voxel = &mut scratch.voxels[ray_buf.slots[j]];
-                            voxel.length += weight * ray_buf.edges[j];
-                            voxel.sum += weight * ray_buf.edges[j] * m;
+                            let voxel = &mut scratch.voxels[ray_buf.slots[j] as usize];
+                            let length = per_z * (ray_buf.z1[j] - ray_buf.z0[j]);
+                            voxel.length += length;
+                            voxel.sum += length * m;
                         }
                     }
                 }

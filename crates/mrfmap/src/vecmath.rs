@@ -1,7 +1,8 @@
 //! `exp` and `ln` of whole slices, in loops the compiler vectorises.
 //!
 //! The MRF's trace takes one exponential (a voxel's cavity as odds) and one logarithm (its
-//! message as log-odds) per voxel a ray crosses: called from libm, one value at a time,
+//! message as log-odds) per voxel a ray crosses, and the noise model's tail one exponential
+//! per voxel boundary ([`crate::frames::upper_tail`]): called from libm, one value at a time,
 //! they were 13% of a trace's instructions. Here they are plain arithmetic on the bits of
 //! IEEE doubles, with no calls, tables or branches, so each loop runs as SIMD on any
 //! x86-64 (two lanes of SSE2) or aarch64. Both are accurate to a few units in the 14th
@@ -40,21 +41,27 @@ const EXP_TAYLOR: [f64; 10] = [
 #[inline(always)] // (so that the AVX2 copy of a tile trace has it in four lanes)
 pub(crate) fn exp_in_place(xs: &mut [f64]) {
     for x in xs.iter_mut() {
-        let v = x.clamp(-700.0, 700.0);
-        let t = v * LOG2_E + SHIFTER;
-        let k = t - SHIFTER;
-        let r = (v - k * LN2_HI) - k * LN2_LO;
-        let mut p = EXP_TAYLOR[0];
-        for c in &EXP_TAYLOR[1..] {
-            p = p * r + c;
-        }
-        let e_r = 1.0 + r + r * r * p;
-        // `t`'s low bits hold k (two's complement within the mantissa); 2^k is the double
-        // with biased exponent k + 1023.
-        let k_bits = t.to_bits().wrapping_sub(SHIFTER.to_bits());
-        let scale = f64::from_bits(k_bits.wrapping_add(1023) << 52);
-        *x = e_r * scale;
+        *x = exp(*x);
     }
+}
+
+/// `e^x` as [`exp_in_place`] computes it, for loops of other shapes.
+#[inline(always)]
+pub(crate) fn exp(x: f64) -> f64 {
+    let v = x.clamp(-700.0, 700.0);
+    let t = v * LOG2_E + SHIFTER;
+    let k = t - SHIFTER;
+    let r = (v - k * LN2_HI) - k * LN2_LO;
+    let mut p = EXP_TAYLOR[0];
+    for c in &EXP_TAYLOR[1..] {
+        p = p * r + c;
+    }
+    let e_r = 1.0 + r + r * r * p;
+    // `t`'s low bits hold k (two's complement within the mantissa); 2^k is the double
+    // with biased exponent k + 1023.
+    let k_bits = t.to_bits().wrapping_sub(SHIFTER.to_bits());
+    let scale = f64::from_bits(k_bits.wrapping_add(1023) << 52);
+    e_r * scale
 }
 
 /// `1 / (2n + 1)` for `n = 8 down to 1`: the series of `atanh(s) / s - 1` in `s^2`.

@@ -506,6 +506,8 @@ impl RayLikelihood<'_> {
             0.0
         } else if b.w - a.w > 1e-3 * a.sigma.min(b.sigma) {
             // P(x_a < X < x_b) from the smaller tails, so far-tail intervals keep precision.
+            // (`mass_density`'s arithmetic, with the tails computed when first needed: calling
+            // it from here instead made an MRF build 1.035x slower, measured.)
             let mass = if a.x >= 0.0 {
                 a.tail() - b.tail()
             } else if b.x <= 0.0 {

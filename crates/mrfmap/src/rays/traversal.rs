@@ -164,9 +164,7 @@ impl Walk {
             }
         }
     }
-}
 
-impl Walk {
     /// The crossings of `[s_start, s_end]` that lie in the bricks (cubes of [`BRICK_EDGE`]
     /// voxels) that `enter` accepts, in order along the ray, with no step through the voxels
     /// of the other bricks. The MRF's trace walks its rays this way: most bricks a ray

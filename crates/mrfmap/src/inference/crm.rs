@@ -43,6 +43,11 @@
 //! good. A voxel seen occupied in a few hundred frames keeps no mass at low occupancy, and if
 //! the surface then goes away its mean falls only to the lowest particle left (0.71 after 300
 //! frames in `pdfs_stay_normalised_and_finite_over_many_updates`), not towards 0.
+//!
+//! A limit of the method itself: with voxels much smaller than the noise, a ray's cause
+//! model peaks `0.69 sigma^2 / r` in front of its reading through unobserved voxels, and a few
+//! readings per voxel leave the surface there (docs/ALGORITHMS.md 5.2; `bench/crm_column.py`
+//! checks this engine against the paper's update written again, within 1e-4).
 
 use crate::map::EngineKind;
 use std::ops::ControlFlow;

@@ -13,7 +13,8 @@ two revisions' counts of those should be equal when they walk the same voxels).
     python3 bench/trace_phase.py --base dfa1c32 --new HEAD ../shared/data/coffin-world \
         --resolution 0.02 --threads 2 --rounds 3
 
-Needs git and cargo; builds into /tmp/trace-phase-<rev>/ (about two minutes each). The
+Needs git and cargo; builds into git worktrees /tmp/trace-phase-<rev>/ (about two minutes
+each), kept for the next run (`git worktree remove --force /tmp/trace-phase-<rev>`). The
 instrumentation matches the trace's code by text; a revision it does not recognise stops the
 script with the line it looked for.
 """

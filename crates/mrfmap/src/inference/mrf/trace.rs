@@ -328,14 +328,16 @@ impl MrfEngine {
     }
 }
 
-/// Defines a tile trace under `$name` with attributes `$attr`: one source for the copy built for
-/// the binary's baseline (SSE2 on x86-64) and the copy built for AVX2, picked at run time by
+/// Defines a tile trace under `$name` (documented by `$doc`), and the messages of one of its
+/// rays under `$msgs`, both with the attributes `$attr`: one source for the copy built for the
+/// binary's baseline (SSE2 on x86-64) and the copy built for AVX2, picked at run time by
 /// [`MrfEngine::trace_tile`]. The closures in a `target_feature` function are compiled with its
 /// features; a body shared through an inlined function would keep its closures (the voxel
 /// walk's, half of a trace) in the baseline's copy.
 macro_rules! tile_trace {
-    ($(#[$attr:meta])* $name:ident) => {
+    ($(#[$doc:meta])* $name:ident, $msgs:ident, [$(#[$attr:meta])*]) => {
         impl MrfEngine {
+            $(#[$doc])*
             $(#[$attr])*
             fn $name<'a>(
                 &'a self,
@@ -418,44 +420,7 @@ macro_rules! tile_trace {
                                 buf.cavity.push(cavity);
                             },
                         );
-                        let ray_buf = &mut scratch.ray;
-                        if ray_buf.slots.is_empty() {
-                            continue;
-                        }
-                        likelihood.over_each(&ray_buf.z0, &ray_buf.z1, &mut ray_buf.nu);
-                        // The chance the surface lies past the segment (outside the map where the
-                        // bounds cut the ray short).
-                        let beyond = seg.beyond(&ray, &kf.noise, &mut likelihood, r);
-                        // Voxels before the first one with any likelihood (the free stretch, about
-                        // a quarter of a ray's voxels at 0.02 m) get the message 0 whatever anyone's
-                        // belief: a surface there would make the reading impossible. Nor does their
-                        // belief reach the other voxels' messages (the prefix of
-                        // `ray_log_messages` stays 0 through them). So they need no cavity and no
-                        // place in the ray's factor; their message is 0 (clamped), unless the ray has
-                        // no likelihood anywhere, beyond included, and says nothing (1/2).
-                        let nu = &ray_buf.nu.density;
-                        let first = nu.iter().position(|&nu| nu > 0.0).unwrap_or(nu.len());
-                        let free = if first < nu.len() || beyond > 0.0 { logit(MSG_EPS) } else { 0.0 };
-                        // (A voxel's length in voxel edges, weighted: its z-depths' difference.)
-                        let per_z = weight * inv_r / cz;
-                        for j in 0..first {
-                            let voxel = &mut scratch.voxels[ray_buf.slots[j] as usize];
-                            let length = per_z * (ray_buf.z1[j] - ray_buf.z0[j]);
-                            voxel.length += length;
-                            voxel.sum += length * free;
-                        }
-                        let odds = &mut ray_buf.cavity[first..];
-                        for x in odds.iter_mut() {
-                            *x = x.clamp(-MAX_LOG_ODDS, MAX_LOG_ODDS);
-                        }
-                        exp_in_place(odds);
-                        ray_log_messages(odds, &nu[first..], beyond, -logit(MSG_EPS), &mut ray_buf.out);
-                        for (j, m) in (first..).zip(&ray_buf.out) {
-                            let voxel = &mut scratch.voxels[ray_buf.slots[j] as usize];
-                            let length = per_z * (ray_buf.z1[j] - ray_buf.z0[j]);
-                            voxel.length += length;
-                            voxel.sum += length * m;
-                        }
+                        self.$msgs(kf, &ray, &seg, &mut likelihood, weight, scratch);
                     }
                 }
                 // New entries, damped in log-odds: part of the old message stays (a tile's first
@@ -513,13 +478,73 @@ macro_rules! tile_trace {
                 new.runs.shrink_to_fit();
                 Traced { index: t, tile: new, changes, gone, rays: traced }
             }
+
+            /// The messages of one walked ray of a tile (its crossings in `scratch.ray`): its
+            /// likelihood, its factor's messages, and each added to the tile's voxel, weighted
+            /// by its length. Not inlined: in the tile's trace, one very large function, the
+            /// compiler laid out the walk worse (a build took 1.04x the time, BENCHMARKS.md,
+            /// "MRF engine", session 33).
+            $(#[$attr])*
+            #[inline(never)]
+            fn $msgs<'a>(
+                &'a self,
+                kf: &Keyframe,
+                ray: &crate::rays::PixelRay,
+                seg: &crate::rays::Segment,
+                likelihood: &mut crate::frames::RayLikelihood,
+                weight: f64,
+                scratch: &mut TileScratch<'a>,
+            ) {
+                let (r, cz) = (self.resolution(), ray.cz);
+                let inv_r = 1.0 / r;
+                let ray_buf = &mut scratch.ray;
+                if ray_buf.slots.is_empty() {
+                    return;
+                }
+                likelihood.over_each(&ray_buf.z0, &ray_buf.z1, &mut ray_buf.nu);
+                // The chance the surface lies past the segment (outside the map where the
+                // bounds cut the ray short).
+                let beyond = seg.beyond(ray, &kf.noise, likelihood, r);
+                // Voxels before the first one with any likelihood (the free stretch, about
+                // a quarter of a ray's voxels at 0.02 m) get the message 0 whatever anyone's
+                // belief: a surface there would make the reading impossible. Nor does their
+                // belief reach the other voxels' messages (the prefix of
+                // `ray_log_messages` stays 0 through them). So they need no cavity and no
+                // place in the ray's factor; their message is 0 (clamped), unless the ray has
+                // no likelihood anywhere, beyond included, and says nothing (1/2).
+                let nu = &ray_buf.nu.density;
+                let first = nu.iter().position(|&nu| nu > 0.0).unwrap_or(nu.len());
+                let free = if first < nu.len() || beyond > 0.0 { logit(MSG_EPS) } else { 0.0 };
+                // (A voxel's length in voxel edges, weighted: its z-depths' difference.)
+                let per_z = weight * inv_r / cz;
+                for j in 0..first {
+                    let voxel = &mut scratch.voxels[ray_buf.slots[j] as usize];
+                    let length = per_z * (ray_buf.z1[j] - ray_buf.z0[j]);
+                    voxel.length += length;
+                    voxel.sum += length * free;
+                }
+                let odds = &mut ray_buf.cavity[first..];
+                for x in odds.iter_mut() {
+                    *x = x.clamp(-MAX_LOG_ODDS, MAX_LOG_ODDS);
+                }
+                exp_in_place(odds);
+                ray_log_messages(odds, &nu[first..], beyond, -logit(MSG_EPS), &mut ray_buf.out);
+                for (j, m) in (first..).zip(&ray_buf.out) {
+                    let voxel = &mut scratch.voxels[ray_buf.slots[j] as usize];
+                    let length = per_z * (ray_buf.z1[j] - ray_buf.z0[j]);
+                    voxel.length += length;
+                    voxel.sum += length * m;
+                }
+            }
         }
     };
 }
 
 tile_trace!(
     /// [`MrfEngine::trace_tile`] for any processor.
-    trace_tile_baseline
+    trace_tile_baseline,
+    ray_messages_baseline,
+    []
 );
 
 tile_trace!(
@@ -527,9 +552,9 @@ tile_trace!(
     /// the messages' loops over a ray's voxels in four lanes instead of two. Bit for bit the
     /// same values (Rust never fuses a multiply and an add unasked, so FMA changes nothing);
     /// 0.93x the time of an MRF build (BENCHMARKS.md "MRF engine", session 25).
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2,fma")]
-    trace_tile_avx2
+    trace_tile_avx2,
+    ray_messages_avx2,
+    [#[cfg(target_arch = "x86_64")] #[target_feature(enable = "avx2,fma")]]
 );
 
 #[cfg(test)]

@@ -9,11 +9,11 @@ use super::MrfEngine;
 use super::schedule::RunReport;
 use super::tiles::{CALM_TRACES, Entry, Keyframe, MAX_DAMPING_LEVEL, Tile, f32_at_most};
 use super::{MAX_LOG_ODDS, ray_log_messages};
-use crate::frames::Intervals;
+use crate::frames::{Intervals, RayLikelihood};
 use crate::inference::Engine;
 use crate::inference::{logit, sigmoid};
 use crate::map::{BRICK_VOXELS, Brick, BrickKey, Grid, SlotMask, VoxelKey, mask_set, mask_slots};
-use crate::rays::{FrameRays, Walk};
+use crate::rays::{FrameRays, PixelRay, Segment, Walk};
 use crate::vecmath::exp_in_place;
 
 /// One tile's trace, before it is applied.
@@ -481,17 +481,17 @@ macro_rules! tile_trace {
 
             /// The messages of one walked ray of a tile (its crossings in `scratch.ray`): its
             /// likelihood, its factor's messages, and each added to the tile's voxel, weighted
-            /// by its length. Not inlined: in the tile's trace, one very large function, the
-            /// compiler laid out the walk worse (a build took 1.04x the time, BENCHMARKS.md,
-            /// "MRF engine", session 33).
+            /// by its length. Not inlined into the tile's trace, one very large function: with
+            /// it inlined a build of coffin3 at 0.02 m took 1.04x the time (on coffin-world on
+            /// two threads the two are within noise; BENCHMARKS.md, "MRF engine", session 33).
             $(#[$attr])*
             #[inline(never)]
             fn $msgs<'a>(
                 &'a self,
                 kf: &Keyframe,
-                ray: &crate::rays::PixelRay,
-                seg: &crate::rays::Segment,
-                likelihood: &mut crate::frames::RayLikelihood,
+                ray: &PixelRay,
+                seg: &Segment,
+                likelihood: &mut RayLikelihood,
                 weight: f64,
                 scratch: &mut TileScratch<'a>,
             ) {

@@ -16,9 +16,9 @@ pub const SAMPLE_FRAMES: usize = 8;
 pub const BUILD_ADVICE: &str = "use a coarser --resolution, or map less with --bounds or --max-range";
 
 /// Where the frames `indices` of `dataset` look, estimated from every pose and a few decoded
-/// frames (decoding every frame twice would double the I/O). The few are decoded one at a
-/// time, once for their ray lengths and again for each walk ([`frames_extent_loaded`]), not
-/// held together.
+/// frames (decoding every frame twice would double the I/O). The few are decoded once and held
+/// while the estimate needs them when they are small (eight 640 x 480 frames), and otherwise
+/// decoded again for each walk, one held at a time ([`frames_extent_loaded`]).
 pub fn dataset_extent(dataset: &Dataset, indices: &[usize], config: &EngineConfig) -> Result<Option<Extent>> {
     let step = indices.len().div_ceil(SAMPLE_FRAMES).max(1);
     let sampled: Vec<usize> = indices.iter().step_by(step).copied().collect();

@@ -383,8 +383,9 @@ pub fn frames_extent(
 /// the sequence's order) when they are needed. Their ray lengths are read first, then they
 /// are walked: the frames are held between the two when all of their depth takes at most 10
 /// MiB (`HELD_DEPTH_BYTES`), and otherwise loaded again for each walk, one held at a time (for
-/// frames read from files, decoded again: eight 640 x 480 frames held were the largest part
-/// of a small build's peak memory, and decoding them twice a tenth of a five-frame build).
+/// frames read from files, decoded again). Held whatever their size, eight 640 x 480 frames
+/// were once the largest part of a small build's peak memory; decoded twice, the estimate took
+/// an eighth of a five-frame build's time.
 pub fn frames_extent_loaded<'f, E>(
     poses: impl IntoIterator<Item = Pose>,
     count: usize,
@@ -395,8 +396,9 @@ pub fn frames_extent_loaded<'f, E>(
 }
 
 /// Depth (4 bytes a pixel) of the sampled frames [`frames_extent_loaded`] may hold between its
-/// passes: eight 640 x 480 frames, which a build's own frames and buffers at that size come
-/// near (two frames and the projection's 5 bytes a pixel: 13 bytes a pixel).
+/// passes: eight 640 x 480 frames. They are held before the map exists; on five such frames
+/// the peak stayed within the runs' spread (BENCHMARKS.md, "Log-odds engine vs wavemap",
+/// session 34).
 const HELD_DEPTH_BYTES: f64 = 10.0 * (1 << 20) as f64;
 
 /// [`frames_extent_loaded`], holding the frames when their depth takes at most `hold` bytes.

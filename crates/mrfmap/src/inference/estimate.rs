@@ -380,34 +380,14 @@ pub fn frames_extent(
 }
 
 /// [`frames_extent`] with `count` sampled frames that `load(k)` gives (`k` in `0..count`, in
-/// the sequence's order) when they are needed. Their ray lengths are read first, then they
-/// are walked: the frames are held between the two when all of their depth takes at most 10
-/// MiB (`HELD_DEPTH_BYTES`), and otherwise loaded again for each walk, one held at a time (for
-/// frames read from files, decoded again). Held whatever their size, eight 640 x 480 frames
-/// were once the largest part of a small build's peak memory; decoded twice, the estimate took
-/// an eighth of a five-frame build's time.
+/// the sequence's order) when they are needed, so that no more than one is held at a time:
+/// for frames read from files, decoded again rather than kept (eight 640 x 480 frames were
+/// the largest part of a small build's peak memory).
 pub fn frames_extent_loaded<'f, E>(
-    poses: impl IntoIterator<Item = Pose>,
-    count: usize,
-    load: impl FnMut(usize) -> std::result::Result<Cow<'f, Frame>, E>,
-    config: &EngineConfig,
-) -> std::result::Result<Option<Extent>, E> {
-    extent_holding_at_most(poses, count, load, config, HELD_DEPTH_BYTES)
-}
-
-/// Depth (4 bytes a pixel) of the sampled frames [`frames_extent_loaded`] may hold between its
-/// passes: eight 640 x 480 frames. They are held before the map exists; on five such frames
-/// the peak stayed within the runs' spread (BENCHMARKS.md, "Log-odds engine vs wavemap",
-/// session 34).
-const HELD_DEPTH_BYTES: f64 = 10.0 * (1 << 20) as f64;
-
-/// [`frames_extent_loaded`], holding the frames when their depth takes at most `hold` bytes.
-fn extent_holding_at_most<'f, E>(
     poses: impl IntoIterator<Item = Pose>,
     count: usize,
     mut load: impl FnMut(usize) -> std::result::Result<Cow<'f, Frame>, E>,
     config: &EngineConfig,
-    hold: f64,
 ) -> std::result::Result<Option<Extent>, E> {
     let mut poses: Vec<Pose> = poses.into_iter().collect();
     // The MRF keeps its keyframes only.
@@ -420,7 +400,6 @@ fn extent_holding_at_most<'f, E>(
     // The mean ray length, from every 8th pixel of the samples.
     let (mut length, mut n) = (0.0, 0.0f64);
     let (mut pixels, mut f) = (0.0, 0.0);
-    let mut held = Vec::new();
     for k in 0..count {
         let frame = load(k)?;
         if k == 0 {
@@ -438,9 +417,6 @@ fn extent_holding_at_most<'f, E>(
                 n += 1.0;
             }
         }
-        if 4.0 * count as f64 * pixels <= hold {
-            held.push(frame);
-        }
     }
     let default_noise = default_noise_model();
     let mut probe = Probe::new(config);
@@ -452,15 +428,14 @@ fn extent_holding_at_most<'f, E>(
     let (sampled_angle, native) = (step as f64 / f, 1.0 / f);
     let readings = poses.len() as f64 / probes as f64;
     let mut walk = |probe: &mut Probe| {
-        // Probes go through the sequence in order, so a sample not held is loaded once per walk.
+        // Probes go through the sequence in order, so each sample is loaded once per walk.
         let mut current: Option<(usize, Cow<'f, Frame>)> = None;
         for j in 0..probes {
             let i = j * poses.len() / probes;
             let k = (i * count / poses.len()).min(count - 1);
-            let frame = match (held.get(k), &current) {
-                (Some(frame), _) => frame,
-                (None, Some((at, frame))) if *at == k => frame,
-                (None, _) => &current.insert((k, load(k)?)).1,
+            let frame = match current {
+                Some((at, ref frame)) if at == k => frame,
+                _ => &current.insert((k, load(k)?)).1,
             };
             let (rotation, origin) = pose_parts(&poses[i]);
             let noise = frame.noise.as_deref().unwrap_or(&default_noise);
@@ -636,47 +611,6 @@ mod tests {
         // Never fewer than MIN_RAYS a reading, however coarse the bricks.
         let (_, coarse) = plan(5, 307_200.0, 3.0, 40.0, Some(480.0));
         assert!(307_200.0 / coarse >= MIN_RAYS - 1e-9, "{coarse}");
-    }
-
-    /// Held between the passes or loaded again for each walk, the samples give the same
-    /// extent, for every engine (the MRF walks twice); held, each is loaded once.
-    #[test]
-    fn samples_held_or_loaded_again_give_one_extent() {
-        let camera = crate::frames::Camera::new(100.0, 100.0, 49.5, 39.5, 100, 80, 1000.0).unwrap();
-        let frames: Vec<Frame> = (0..3)
-            .map(|i| Frame {
-                index: i,
-                timestamp: 0.0,
-                // Walls at different depths, with a gap of invalid pixels.
-                depth: crate::frames::DepthImage::from_vec(
-                    100,
-                    80,
-                    (0..8000).map(|p| if p % 100 < 10 { 0.0 } else { 1.5 + 0.5 * i as f32 }).collect(),
-                )
-                .unwrap(),
-                pose: Pose::translation(0.3 * i as f64, 0.0, 0.0),
-                camera,
-                noise: None,
-            })
-            .collect();
-        let poses: Vec<Pose> = (0..12).map(|i| Pose::translation(0.1 * i as f64, 0.05 * i as f64, 0.0)).collect();
-        for kind in [EngineKind::LogOdds, EngineKind::Crm, EngineKind::Mrf] {
-            let config = EngineConfig::new(kind, 0.05);
-            let mut runs = Vec::new();
-            for hold in [HELD_DEPTH_BYTES, 0.0] {
-                let mut loads = 0;
-                let load = |k: usize| {
-                    loads += 1;
-                    Ok::<_, std::convert::Infallible>(Cow::Owned(frames[k].clone()))
-                };
-                let Ok(extent) = extent_holding_at_most(poses.iter().copied(), frames.len(), load, &config, hold);
-                runs.push((extent, loads));
-            }
-            let walks = if kind == EngineKind::Mrf { 2 } else { 1 };
-            assert!(runs[0].0.is_some_and(|e| e.bricks > 0.0), "{kind:?}");
-            assert_eq!(runs[0].0, runs[1].0, "{kind:?}");
-            assert_eq!((runs[0].1, runs[1].1), (3, 3 + 3 * walks), "{kind:?}: loads held / not");
-        }
     }
 
     #[test]

@@ -4,6 +4,8 @@
 
 use std::borrow::Cow;
 
+use rayon::prelude::*;
+
 use crate::error::{Error, Result};
 use crate::frames::{Frame, Pose};
 use crate::inference::{EngineConfig, Extent, MapOutput, check_build, frames_extent, frames_extent_loaded};
@@ -16,13 +18,38 @@ pub const SAMPLE_FRAMES: usize = 8;
 pub const BUILD_ADVICE: &str = "use a coarser --resolution, or map less with --bounds or --max-range";
 
 /// Where the frames `indices` of `dataset` look, estimated from every pose and a few decoded
-/// frames (decoding every frame twice would double the I/O). The few are decoded once and held
-/// while the estimate needs them when they are small (eight 640 x 480 frames), and otherwise
-/// decoded again for each walk, one held at a time ([`frames_extent_loaded`]).
+/// frames (decoding every frame twice would double the I/O). When the few take at most 10 MiB
+/// of depth (eight 640 x 480 frames), they are decoded once, together on the pool's threads,
+/// and held while the estimate reads them; larger ones are decoded one at a time, again for
+/// each of the estimate's passes ([`frames_extent_loaded`]). (Decoded twice, eight 640 x 480
+/// frames took an eighth of a five-frame build; held whatever their size, they were once the
+/// largest part of a small build's peak memory.)
 pub fn dataset_extent(dataset: &Dataset, indices: &[usize], config: &EngineConfig) -> Result<Option<Extent>> {
+    extent_holding_at_most(dataset, indices, config, HELD_DEPTH_BYTES)
+}
+
+/// Depth (4 bytes a pixel) of the sampled frames [`dataset_extent`] may hold: eight 640 x 480
+/// frames. They are held before the map exists; on five such frames the peak stayed within the
+/// runs' spread (BENCHMARKS.md, "Log-odds engine vs wavemap", session 34).
+const HELD_DEPTH_BYTES: f64 = 10.0 * (1 << 20) as f64;
+
+/// [`dataset_extent`], holding the sampled frames when their depth takes at most `hold` bytes.
+fn extent_holding_at_most(
+    dataset: &Dataset,
+    indices: &[usize],
+    config: &EngineConfig,
+    hold: f64,
+) -> Result<Option<Extent>> {
     let step = indices.len().div_ceil(SAMPLE_FRAMES).max(1);
     let sampled: Vec<usize> = indices.iter().step_by(step).copied().collect();
     let poses = indices.iter().map(|&i| dataset.frames()[i].pose);
+    let camera = dataset.camera();
+    if 4.0 * f64::from(camera.width) * f64::from(camera.height) * sampled.len() as f64 <= hold {
+        // (The first frame that fails is the one named, whichever thread read it.)
+        let decoded: Vec<Result<Frame>> = sampled.par_iter().map(|&i| dataset.frame(i)).collect();
+        let frames = decoded.into_iter().collect::<Result<Vec<Frame>>>()?;
+        return Ok(frames_extent(poses, &frames, config));
+    }
     frames_extent_loaded(poses, sampled.len(), |k| dataset.frame(sampled[k]).map(Cow::Owned), config)
 }
 
@@ -86,8 +113,9 @@ mod tests {
     use crate::inference::EngineKind;
     use crate::source::{Scene, simulate};
 
-    /// A dataset's estimate, its sampled frames decoded one at a time, is the estimate of the
-    /// same frames held together, for every engine (the MRF walks twice).
+    /// A dataset's estimate, its sampled frames decoded together (on the pool's threads) or one
+    /// at a time for each pass, is the estimate of the same frames held, for every engine (the
+    /// MRF walks twice).
     #[test]
     fn a_dataset_estimate_equals_the_estimate_of_its_frames_held() {
         let scene = Scene::from_toml(
@@ -111,9 +139,10 @@ mod tests {
         for kind in [EngineKind::LogOdds, EngineKind::Crm, EngineKind::Mrf] {
             let config = EngineConfig::new(kind, 0.05);
             let held = frames_extent(indices.iter().map(|&i| dataset.frames()[i].pose), &sampled, &config);
-            let loaded = dataset_extent(&dataset, &indices, &config).unwrap();
             assert!(held.is_some_and(|e| e.bricks > 0.0), "{kind:?}");
-            assert_eq!(held, loaded, "{kind:?}");
+            // Decoded together and held (these small frames), or one at a time for each pass.
+            assert_eq!(held, dataset_extent(&dataset, &indices, &config).unwrap(), "{kind:?}");
+            assert_eq!(held, extent_holding_at_most(&dataset, &indices, &config, 0.0).unwrap(), "{kind:?}");
         }
         std::fs::remove_dir_all(&dir).unwrap();
     }

@@ -185,7 +185,10 @@ fn main() {
 /// and memory freed into one arena is not reused by another: a build on two threads, with the
 /// next frame read on a third, peaked 1.5-2 MB higher (5% of a small map's process) than with
 /// one arena per computing thread, at the same speed (BENCHMARKS.md, session 31). So this
-/// process keeps one arena per thread it computes on (at least two).
+/// process keeps one arena per thread it computes on. On one thread that is the main arena
+/// alone: a second one (the pool's worker allocates, the main thread waits) grew a page or so
+/// at a time, 3,000-4,600 `mprotect` calls a build at 0.02 m, and it cost 3-4% of the
+/// integration time and 1.3-2.3 MB of peak memory (BENCHMARKS.md, session 34).
 #[cfg(all(target_os = "linux", target_env = "gnu"))]
 fn limit_malloc_arenas(threads: usize) {
     use std::ffi::c_int;
@@ -196,7 +199,7 @@ fn limit_malloc_arenas(threads: usize) {
     // SAFETY: `mallopt` sets one of the allocator's parameters and is safe to call at any
     // time (glibc takes its lock); an arena limit only decides where later allocations go.
     unsafe {
-        mallopt(M_ARENA_MAX, threads.clamp(2, 1024) as c_int);
+        mallopt(M_ARENA_MAX, threads.clamp(1, 1024) as c_int);
     }
 }
 

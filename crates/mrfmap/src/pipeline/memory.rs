@@ -18,22 +18,23 @@ pub const SAMPLE_FRAMES: usize = 8;
 pub const BUILD_ADVICE: &str = "use a coarser --resolution, or map less with --bounds or --max-range";
 
 /// Where the frames `indices` of `dataset` look, estimated from every pose and a few decoded
-/// frames (decoding every frame twice would double the I/O). When the few take at most 10 MiB
-/// of depth (eight 640 x 480 frames), they are decoded once, together on the pool's threads,
-/// and held while the estimate reads them; larger ones are decoded one at a time, again for
-/// each of the estimate's passes ([`frames_extent_loaded`]). (Decoded twice, eight 640 x 480
-/// frames took an eighth of a five-frame build; held whatever their size, they were once the
-/// largest part of a small build's peak memory.)
+/// frames (decoding every frame twice would double the I/O). When the few are all the frames
+/// (eight or fewer) and take at most 10 MiB of depth (eight 640 x 480 frames), they are decoded
+/// once, together on the pool's threads, and held while the estimate reads them: the build
+/// decodes each of them again, and the estimate's decodes were a third of all. Otherwise they
+/// are decoded one at a time, again for each of the estimate's passes
+/// ([`frames_extent_loaded`]): there they are a small share of the decodes, and eight frames
+/// held set a small map's peak (icl-livingroom1 at 0.05 m: 17.0 MiB where the build alone
+/// peaks at 12.4; BENCHMARKS.md, "Log-odds engine vs wavemap", session 34).
 pub fn dataset_extent(dataset: &Dataset, indices: &[usize], config: &EngineConfig) -> Result<Option<Extent>> {
     extent_holding_at_most(dataset, indices, config, HELD_DEPTH_BYTES)
 }
 
-/// Depth (4 bytes a pixel) of the sampled frames [`dataset_extent`] may hold: eight 640 x 480
-/// frames. They are held before the map exists; on five such frames the peak stayed within the
-/// runs' spread (BENCHMARKS.md, "Log-odds engine vs wavemap", session 34).
+/// Depth (4 bytes a pixel) of the frames [`dataset_extent`] may hold: eight 640 x 480 frames.
 const HELD_DEPTH_BYTES: f64 = 10.0 * (1 << 20) as f64;
 
-/// [`dataset_extent`], holding the sampled frames when their depth takes at most `hold` bytes.
+/// [`dataset_extent`], holding the sampled frames when they are all the frames and their depth
+/// takes at most `hold` bytes.
 fn extent_holding_at_most(
     dataset: &Dataset,
     indices: &[usize],
@@ -44,7 +45,8 @@ fn extent_holding_at_most(
     let sampled: Vec<usize> = indices.iter().step_by(step).copied().collect();
     let poses = indices.iter().map(|&i| dataset.frames()[i].pose);
     let camera = dataset.camera();
-    if 4.0 * f64::from(camera.width) * f64::from(camera.height) * sampled.len() as f64 <= hold {
+    let bytes = 4.0 * f64::from(camera.width) * f64::from(camera.height) * sampled.len() as f64;
+    if sampled.len() == indices.len() && bytes <= hold {
         // (The first frame that fails is the one named, whichever thread read it.)
         let decoded: Vec<Result<Frame>> = sampled.par_iter().map(|&i| dataset.frame(i)).collect();
         let frames = decoded.into_iter().collect::<Result<Vec<Frame>>>()?;
@@ -115,7 +117,7 @@ mod tests {
 
     /// A dataset's estimate, its sampled frames decoded together (on the pool's threads) or one
     /// at a time for each pass, is the estimate of the same frames held, for every engine (the
-    /// MRF walks twice).
+    /// MRF walks twice), for a long build and for a build of a few frames.
     #[test]
     fn a_dataset_estimate_equals_the_estimate_of_its_frames_held() {
         let scene = Scene::from_toml(
@@ -136,13 +138,18 @@ mod tests {
         let step = indices.len().div_ceil(SAMPLE_FRAMES);
         let sampled: Vec<Frame> = indices.iter().step_by(step).map(|&i| dataset.frame(i).unwrap()).collect();
         assert!(sampled.len() > 1 && sampled.len() <= SAMPLE_FRAMES);
+        // Twenty frames, eight of them sampled (decoded one at a time for each pass), and six
+        // frames, all sampled (decoded together and held, or not with no room to hold them).
+        let few: Vec<usize> = (3..9).collect();
+        let few_frames: Vec<Frame> = few.iter().map(|&i| dataset.frame(i).unwrap()).collect();
         for kind in [EngineKind::LogOdds, EngineKind::Crm, EngineKind::Mrf] {
             let config = EngineConfig::new(kind, 0.05);
-            let held = frames_extent(indices.iter().map(|&i| dataset.frames()[i].pose), &sampled, &config);
-            assert!(held.is_some_and(|e| e.bricks > 0.0), "{kind:?}");
-            // Decoded together and held (these small frames), or one at a time for each pass.
-            assert_eq!(held, dataset_extent(&dataset, &indices, &config).unwrap(), "{kind:?}");
-            assert_eq!(held, extent_holding_at_most(&dataset, &indices, &config, 0.0).unwrap(), "{kind:?}");
+            for (indices, sampled) in [(&indices, &sampled), (&few, &few_frames)] {
+                let held = frames_extent(indices.iter().map(|&i| dataset.frames()[i].pose), sampled, &config);
+                assert!(held.is_some_and(|e| e.bricks > 0.0), "{kind:?}");
+                assert_eq!(held, dataset_extent(&dataset, indices, &config).unwrap(), "{kind:?}");
+                assert_eq!(held, extent_holding_at_most(&dataset, indices, &config, 0.0).unwrap(), "{kind:?}");
+            }
         }
         std::fs::remove_dir_all(&dir).unwrap();
     }

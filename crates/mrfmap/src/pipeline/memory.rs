@@ -21,7 +21,8 @@ pub const BUILD_ADVICE: &str = "use a coarser --resolution, or map less with --b
 /// frames (decoding every frame twice would double the I/O). When the few are all the frames
 /// (eight or fewer) and take at most 10 MiB of depth (eight 640 x 480 frames), they are decoded
 /// once, together on the pool's threads, and held while the estimate reads them: the build
-/// decodes each of them again, and the estimate's decodes were a third of all. Otherwise they
+/// decodes each of them again, and the estimate's own decodes (two per frame, three for the
+/// MRF) were most of all. Otherwise they
 /// are decoded one at a time, again for each of the estimate's passes
 /// ([`frames_extent_loaded`]): there they are a small share of the decodes, and eight frames
 /// held set a small map's peak (icl-livingroom1 at 0.05 m: 17.0 MiB where the build alone

@@ -24,7 +24,7 @@ use rustc_hash::FxHashMap;
 use super::{Engine, SavedMap, logit, sigmoid};
 use crate::error::{Error, Result};
 use crate::frames::{Frame, RangeScan};
-use crate::map::{Aabb, BrickKey, BrickList, Grid, Map, MapVoxel, SlotMask, VoxelKey, box_keys, mask_set};
+use crate::map::{Aabb, BrickKey, BrickList, Grid, Map, MapVoxel, SlotMask, VoxelKey, box_keys};
 use crate::rays::{CrossedVoxels, PixelRay, Projector, RayLimits, Rays, for_each_crossing};
 
 /// How one ray changes the voxels it crosses (occupancy probabilities, turned into log-odds).
@@ -443,11 +443,10 @@ impl ScanMarks {
     fn of_crossed(c: CrossedVoxels) -> Self {
         let mut bricks: FxHashMap<BrickKey, BrickMarks> =
             c.crossed.into_iter().map(|(k, free)| (k, BrickMarks { free, hit: [0; 8] })).collect();
-        for key in c.ends {
+        for (k, hit) in c.ends {
             // The end voxel is crossed too; it is in `crossed` unless the segment only
             // touches it, and then it is the voxel the walk would have ended in.
-            let m = bricks.entry(key.brick()).or_default();
-            mask_set(&mut m.hit, key.slot());
+            bricks.entry(k).or_default().hit = hit;
         }
         ScanMarks { bricks }
     }

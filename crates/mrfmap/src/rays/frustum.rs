@@ -15,9 +15,11 @@
 //!    through it and each voxel covers a pixel centre ([`Seen::All`]: all its voxels are
 //!    crossed); or neither ([`Seen::Some`]: split it).
 //! 3. A single voxel that stays undecided gets the exact test: does the segment of some pixel
-//!    in its footprint pass through it (slab test)? Pixels go in blocks of 4 x 4; a block is
-//!    ruled out first by its depth bounds, then by one slab test of the box of its rays'
-//!    directions ([`View::block_misses`]), and only then are its rows tested in lanes.
+//!    in its footprint pass through it (slab test)? Not if a segment ends at a measured
+//!    surface inside it: it is then the frame's surface, crossed or not, and is set as
+//!    crossed. Pixels go in blocks of 4 x 4; a block is ruled out first by its depth
+//!    bounds, then by one slab test of the box of its rays' directions
+//!    ([`View::block_misses`]), and only then are its rows tested in lanes.
 //! 4. Undecided bricks that few pixels see, or that lie where voxels are smaller than a pixel
 //!    (so no box can be decided whole), have their rays walked within the brick instead.
 //!
@@ -35,7 +37,8 @@ use std::ops::ControlFlow;
 use super::{CameraRays, FrameRays, PixelRay, RayLimits, for_each_crossing};
 use crate::frames::{Camera, DepthImage, Frame};
 use crate::map::{Aabb, box_keys};
-use crate::map::{BRICK_EDGE, BrickKey, SlotMask, VoxelKey, floor_i32, mask_set};
+use crate::map::{BRICK_EDGE, BrickKey, SlotMask, VoxelKey, floor_i32, mask_has, mask_set, mask_slots};
+use rustc_hash::FxHashMap;
 
 mod centres;
 
@@ -44,9 +47,16 @@ mod centres;
 pub struct CrossedVoxels {
     /// Crossed voxels per brick; each brick appears once.
     pub crossed: Vec<(BrickKey, SlotMask)>,
-    /// The voxels where segments end at their measured surface (each at least once; a voxel
-    /// may repeat).
-    pub ends: Vec<VoxelKey>,
+    /// The voxels where segments end at their measured surface, per brick; each brick
+    /// appears once.
+    pub ends: Vec<(BrickKey, SlotMask)>,
+}
+
+impl CrossedVoxels {
+    /// The voxels of [`CrossedVoxels::ends`] one by one.
+    pub fn end_voxels(&self) -> impl Iterator<Item = VoxelKey> + '_ {
+        self.ends.iter().flat_map(|(b, m)| mask_slots(m).map(|s| b.voxel(s)))
+    }
 }
 
 /// Finds the voxels a depth image's rays cross by projection (see the module documentation).
@@ -64,7 +74,7 @@ pub struct CrossedVoxels {
 /// let frame = Frame { index: 0, timestamp: 0.0, depth, pose, camera, noise: None };
 /// let c = Projector::default().crossed_voxels(&frame, &RayLimits::default(), 0.05, None);
 /// // The wall z = 1 m ahead is at x = 1.01, in voxel column 20; no end falls elsewhere.
-/// assert!(!c.ends.is_empty() && c.ends.iter().all(|k| k.0[0] == 20));
+/// assert!(!c.ends.is_empty() && c.end_voxels().all(|k| k.0[0] == 20));
 /// let count: u32 = c.crossed.iter().flat_map(|(_, m)| m.iter()).map(|w| w.count_ones()).sum();
 /// assert!(count > 20); // at least the 21 voxels straight ahead
 /// ```
@@ -127,16 +137,23 @@ impl Projector {
         let mut crossed = Vec::new();
         let mut undecided = Vec::new();
         view.split_bricks(root, &mut crossed, &mut undecided);
+        // The surfaces' voxels by brick: an undecided voxel among them needs no exact test, as
+        // a voxel both crossed and a surface in one frame counts as a surface.
+        let mut ends_by_brick: FxHashMap<BrickKey, SlotMask> = FxHashMap::default();
+        for key in ends {
+            mask_set(ends_by_brick.entry(key.brick()).or_default(), key.slot());
+        }
         crossed.par_extend(undecided.into_par_iter().filter_map(|(brick, footprint)| {
             let mut mask = [0u64; 8];
             if footprint.rect.area() <= WALK_MAX_PIXELS || !footprint.dense {
                 walk_brick(&rays, limits, resolution, brick, &footprint.rect, &mut mask);
             } else {
-                view.split_voxels(Box3::of_brick(brick), &mut mask);
+                let surface = ends_by_brick.get(&brick).copied().unwrap_or_default();
+                view.split_voxels(Box3::of_brick(brick), &surface, &mut mask);
             }
             (mask != [0; 8]).then_some((brick, mask))
         }));
-        CrossedVoxels { crossed, ends }
+        CrossedVoxels { crossed, ends: ends_by_brick.into_iter().collect() }
     }
 }
 
@@ -903,9 +920,9 @@ impl<'a> View<'a> {
     }
 
     /// Splits the undecided box `b` (inside one brick) down to voxels, setting the crossed
-    /// ones in `mask`. Its eight halves are judged together: their corners are 27 points,
-    /// not 64.
-    fn split_voxels(&self, b: Box3, mask: &mut SlotMask) {
+    /// ones in `mask`; those in `surface` (the brick's measured surfaces) are set without the
+    /// exact test. Its eight halves are judged together: their corners are 27 points, not 64.
+    fn split_voxels(&self, b: Box3, surface: &SlotMask, mask: &mut SlotMask) {
         let half = (b.hi[0] - b.lo[0]) / 2;
         let origin = self.corner_at(b.lo);
         let step = self.step.map(|s| s.map(|c| c * half as f64));
@@ -930,11 +947,12 @@ impl<'a> View<'a> {
             match self.judge(corners, true) {
                 (Seen::None, _) => {}
                 (Seen::Some, Some(footprint)) if half == 1 => {
-                    if self.voxel_crossed(lo, &footprint) {
-                        mask_set(mask, VoxelKey(lo).slot());
+                    let slot = VoxelKey(lo).slot();
+                    if mask_has(surface, slot) || self.voxel_crossed(lo, &footprint) {
+                        mask_set(mask, slot);
                     }
                 }
-                (Seen::Some, _) => self.split_voxels(child, mask),
+                (Seen::Some, _) => self.split_voxels(child, surface, mask),
                 (Seen::All, _) => {
                     for z in child.lo[2]..child.hi[2] {
                         for y in child.lo[1]..child.hi[1] {
@@ -1274,7 +1292,7 @@ pub(super) mod tests {
             .inspect(|(b, _)| assert!(bricks.insert(*b), "brick {b:?} twice"))
             .flat_map(|(b, m)| mask_slots(m).map(|s| b.voxel(s)).collect::<Vec<_>>())
             .collect();
-        (set, c.ends.into_iter().collect())
+        (set, c.end_voxels().collect())
     }
 
     /// The AVX2 copy of a row's filling gives the baseline copy's segments and ends bit for bit,

@@ -122,8 +122,8 @@ pub fn surface_truth(
         for (brick, mask) in &seen.crossed {
             truth.brick_or_insert(*brick).update_slots(mask, free, |_| {});
         }
-        for &key in &seen.ends {
-            truth.insert(key, occupied);
+        for (brick, hit) in &seen.ends {
+            truth.brick_or_insert(*brick).update_slots(hit, occupied, |v| *v = occupied);
         }
     }
     Ok(truth)

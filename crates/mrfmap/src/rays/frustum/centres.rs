@@ -17,7 +17,7 @@ use rayon::prelude::*;
 
 use super::{Box3, Corner, PixelDepths, Projector, Rect, Seen, Segments, View};
 use crate::frames::Frame;
-use crate::map::{Aabb, BrickKey, SlotMask, VoxelKey, box_keys, mask_slots};
+use crate::map::{Aabb, BrickKey, SlotMask, VoxelKey, box_keys};
 use crate::rays::{CrossedVoxels, FrameRays, RayLimits};
 
 /// A pixel's segment start in this model, which the pyramid does not read (free space starts
@@ -46,7 +46,7 @@ impl Projector {
     /// let frame = Frame { index: 0, timestamp: 0.0, depth, pose, camera, noise: None };
     /// let c = Projector::default().centre_voxels(&frame, &RayLimits::default(), 0.05, None);
     /// // The wall at x = 1.01 is in voxel column 20, whose centre lies behind it.
-    /// assert!(!c.ends.is_empty() && c.ends.iter().all(|k| k.0[0] == 20));
+    /// assert!(!c.ends.is_empty() && c.end_voxels().all(|k| k.0[0] == 20));
     /// let free: Vec<i32> = c.crossed.iter()
     ///     .flat_map(|(b, m)| mrfmap::map::mask_slots(m).map(move |s| b.voxel(s)))
     ///     .filter(|k| k.0[1] == 0 && k.0[2] == 0).map(|k| k.0[0]).collect();
@@ -82,19 +82,22 @@ impl Projector {
             if free != [0; 8] {
                 crossed.push((brick, free));
             }
-            ends.extend(mask_slots(&hit).map(|s| brick.voxel(s)));
+            if hit != [0; 8] {
+                ends.push((brick, hit));
+            }
         }
         if let Some(b) = &limits.bounds {
             // Bricks are whole boxes: the bounds cut those on their faces.
             let (lo, hi) = box_keys(b, resolution);
             let inside = Box3 { lo, hi: hi.map(|h| h + 1) };
-            crossed.retain_mut(|(brick, mask)| {
+            let cut = |(brick, mask): &mut (BrickKey, SlotMask)| {
                 for (w, m) in mask.iter_mut().zip(box_mask(*brick, &inside)) {
                     *w &= m;
                 }
                 *mask != [0; 8]
-            });
-            ends.retain(|k| (0..3).all(|a| (inside.lo[a]..inside.hi[a]).contains(&k.0[a])));
+            };
+            crossed.retain_mut(cut);
+            ends.retain_mut(cut);
         }
         CrossedVoxels { crossed, ends }
     }
@@ -297,6 +300,7 @@ mod tests {
 
     use super::super::tests::{projected, random_frame, random_limits};
     use super::*;
+    use crate::map::mask_slots;
     use crate::random::Rng;
 
     type Sets = (BTreeSet<VoxelKey>, BTreeSet<VoxelKey>);
@@ -304,7 +308,7 @@ mod tests {
     fn centres(frame: &Frame, limits: &RayLimits, r: f64) -> Sets {
         let c = Projector::default().centre_voxels(frame, limits, r, None);
         let free = c.crossed.iter().flat_map(|(b, m)| mask_slots(m).map(|s| b.voxel(s)).collect::<Vec<_>>()).collect();
-        (free, c.ends.into_iter().collect())
+        (free, c.end_voxels().collect())
     }
 
     /// The model's definition, voxel by voxel over every voxel that could be in view, in f64

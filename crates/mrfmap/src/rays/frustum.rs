@@ -364,12 +364,21 @@ impl Segments {
         #[cfg(target_arch = "x86_64")]
         let avx2 = std::is_x86_feature_detected!("avx2");
         self.fill_with(rays.size(), limits.bounds.is_some(), |v, pixels, ends, above| {
+            let cut = limits.bounds.is_none() && limits.max_range.is_some_and(|m| rays.row_may_cut(v as u32, m));
             #[cfg(target_arch = "x86_64")]
             if avx2 {
                 // SAFETY: the processor has AVX2, checked above.
-                return unsafe { segments_row_avx2(rays, limits, resolution, v, pixels, ends, above) };
+                return unsafe {
+                    match cut {
+                        true => segments_row_avx2::<true>(rays, limits, resolution, v, pixels, ends, above),
+                        false => segments_row_avx2::<false>(rays, limits, resolution, v, pixels, ends, above),
+                    }
+                };
             }
-            segments_row_baseline(rays, limits, resolution, v, pixels, ends, above)
+            match cut {
+                true => segments_row_baseline::<true>(rays, limits, resolution, v, pixels, ends, above),
+                false => segments_row_baseline::<false>(rays, limits, resolution, v, pixels, ends, above),
+            }
         })
     }
 
@@ -532,10 +541,15 @@ impl Segments {
 /// closures and lane loops (the plain pixels' ranges, depths and ends, [`FrameRays::row_plain`])
 /// are compiled with its features (closures in a shared inlined body would not be). The same
 /// values bit for bit: no fused multiply-adds.
+///
+/// With `CUT` (only without bounds), the readings beyond the max range are cut in lanes too
+/// ([`FrameRays::row_cut`]); without, one ray at a time. Two copies, not one with a test:
+/// with the cut's code in it, the loop over rows that have no reading beyond the max range
+/// took 2.5-5% longer (BENCHMARKS.md, session 34), so such rows keep the copy without it.
 macro_rules! segments_row {
     ($(#[$attr:meta])* $name:ident) => {
         $(#[$attr])*
-        fn $name(
+        fn $name<const CUT: bool>(
             rays: &FrameRays,
             limits: &RayLimits,
             resolution: f64,
@@ -561,9 +575,13 @@ macro_rules! segments_row {
             let v = v as u32;
             let plain = limits.bounds.is_none() && {
                 let row_ends = &mut *pixels.ends;
+                if CUT {
+                    rays.row_cut(v, limits, resolution, row_ends);
+                }
                 rays.row_plain(v, max_range, inv_r, |u, plain| {
                     let (z, end) = match plain {
                         Some((z, end)) => (z, Some(end)),
+                        None if CUT => return, // (set by `row_cut`)
                         None => match rays.ray(u as u32, v).as_ref().and_then(segment) {
                             Some((depths, end)) => (depths.0[1], end),
                             None => return,
@@ -1175,6 +1193,7 @@ pub(super) mod tests {
     use crate::frames::{Camera, DepthImage, look_at};
     use crate::map::mask_slots;
     use crate::random::Rng;
+    use crate::rays::CUT_IN_LANES;
 
     /// The slab test in four lanes gives each lane's own answer (no lane leaks into another),
     /// which is the brute-force answer: the segment's depths overlap the box's along all three
@@ -1311,11 +1330,12 @@ pub(super) mod tests {
                 let rays = FrameRays::with_camera_rays(&frame, &mut cache);
                 let (mut base, mut fast) = (Segments::default(), Segments::default());
                 let starts = limits.bounds.is_some();
-                let base_ends = base
-                    .fill_with(rays.size(), starts, |v, p, e, a| segments_row_baseline(&rays, &limits, r, v, p, e, a));
+                let base_ends = base.fill_with(rays.size(), starts, |v, p, e, a| {
+                    segments_row_baseline::<false>(&rays, &limits, r, v, p, e, a)
+                });
                 // SAFETY: the processor has AVX2, checked above.
                 let fast_ends = fast.fill_with(rays.size(), starts, |v, p, e, a| unsafe {
-                    segments_row_avx2(&rays, &limits, r, v, p, e, a)
+                    segments_row_avx2::<false>(&rays, &limits, r, v, p, e, a)
                 });
                 let bits = |x: &[f32]| x.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
                 assert_eq!(bits(&base.ends), bits(&fast.ends), "case {case}");
@@ -1327,6 +1347,49 @@ pub(super) mod tests {
             return;
         }
         eprintln!("skipped: this processor has no AVX2, only the baseline copy runs");
+    }
+
+    /// A row's filling, as [`Segments::fill_with`] takes it.
+    type RowFill<'r> = dyn Fn(usize, PixelRow<'_>, &mut Vec<VoxelKey>, &mut [[f64; 3]]) + Sync + 'r;
+
+    /// Readings beyond the max range cut in lanes ([`FrameRays::row_cut`], the copies with
+    /// `CUT`) give the segments of [`RayLimits::hit_miss_segment`] one ray at a time (the
+    /// copies without) bit for bit, in both the lanes and the per-pixel branch, and in both
+    /// processor copies where the processor has AVX2.
+    #[test]
+    fn readings_beyond_the_max_range_cut_in_lanes_are_each_rays_own() {
+        let (mut rng, mut rows_in_lanes, mut rows_per_pixel) = (Rng::new(11), 0, 0);
+        for case in 0..40 {
+            let frame = random_frame(&mut rng);
+            let r = rng.range(0.01, 0.25);
+            let limits = RayLimits { max_range: Some(rng.range(0.2, 3.0)), bounds: None };
+            let mut cache = CameraRays::default();
+            let rays = FrameRays::with_camera_rays(&frame, &mut cache);
+            let size = rays.size();
+            for v in 0..size.1 {
+                let beyond = rays.row(v as u32).filter(|ray| ray.range > limits.max_range.unwrap()).count();
+                rows_in_lanes += (beyond >= CUT_IN_LANES) as usize;
+                rows_per_pixel += (beyond > 0 && beyond < CUT_IN_LANES) as usize;
+            }
+            let fill = |row: &RowFill| {
+                let mut seg = Segments::default();
+                let ends = seg.fill_with(size, false, |v, p, e, a| row(v, p, e, a));
+                (seg.ends.iter().map(|z| z.to_bits()).collect::<Vec<_>>(), ends)
+            };
+            let one_by_one = fill(&|v, p, e, a| segments_row_baseline::<false>(&rays, &limits, r, v, p, e, a));
+            let in_lanes = fill(&|v, p, e, a| segments_row_baseline::<true>(&rays, &limits, r, v, p, e, a));
+            assert_eq!(one_by_one, in_lanes, "case {case}");
+            #[cfg(target_arch = "x86_64")]
+            if std::is_x86_feature_detected!("avx2") {
+                // SAFETY: the processor has AVX2, checked just above.
+                let fast = fill(&|v, p, e, a| unsafe { segments_row_avx2::<true>(&rays, &limits, r, v, p, e, a) });
+                assert_eq!(one_by_one, fast, "case {case}");
+            }
+        }
+        assert!(
+            rows_in_lanes >= 50 && rows_per_pixel >= 50,
+            "{rows_in_lanes} rows in lanes, {rows_per_pixel} per pixel"
+        );
     }
 
     /// A block that [`View::block_misses`] rules out has no pixel whose slab test passes, for

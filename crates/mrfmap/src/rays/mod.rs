@@ -276,6 +276,92 @@ impl FrameRays<'_> {
     }
 }
 
+/// Blocks of [`PLAIN_COLUMNS`] pixels with at least this many readings beyond the max range
+/// have their cut segments computed in lanes by [`FrameRays::row_cut`]; fewer go one at a time
+/// (the lanes compute every column of the block).
+const CUT_IN_LANES: usize = 8;
+
+impl FrameRays<'_> {
+    /// Whether row `v` may hold a valid reading beyond `max_range`: its deepest reading along
+    /// the row's longest camera ray reaches past it. Only a choice of the faster way to fill
+    /// a row: [`FrameRays::row_cut`] is not needed for rows where this is false.
+    pub(crate) fn row_may_cut(&self, v: u32, max_range: f64) -> bool {
+        let Some(c) = self.camera_rays else { return false };
+        let deepest = self.frame.depth.row(v).iter().fold(0.0f32, |m, &z| m.max(z));
+        let y = c.ys[v as usize];
+        let (first, last) = (c.xs.first().copied().unwrap_or(0.0), c.xs.last().copied().unwrap_or(0.0));
+        let longest = (first.abs().max(last.abs()).powi(2) + y * y + 1.0).sqrt();
+        deepest as f64 * longest > max_range
+    }
+
+    /// Row `v`'s valid pixels whose readings lie beyond the max range of `limits` (which has
+    /// no bounds): sets `ends[u]` to the camera z-depth where the segment of
+    /// [`RayLimits::hit_miss_segment`] ends, for those it leaves a segment. The values are
+    /// that function's bit for bit (the same operations in the same order, no fused ones),
+    /// computed in lanes a block of [`PLAIN_COLUMNS`] at a time where at least
+    /// [`CUT_IN_LANES`] of its pixels are beyond, per pixel otherwise. Does nothing without
+    /// cached camera rays or a max range. The pixels within the max range are
+    /// [`FrameRays::row_plain`]'s.
+    #[inline(always)]
+    pub(crate) fn row_cut(&self, v: u32, limits: &RayLimits, resolution: f64, ends: &mut [f32]) {
+        debug_assert!(limits.bounds.is_none(), "a cut segment with bounds starts past the camera");
+        let (Some(c), Some(max_range)) = (self.camera_rays, limits.max_range) else { return };
+        let (y, depth, rotation, origin) = (c.ys[v as usize], self.frame.depth.row(v), &self.rotation, self.origin);
+        let y2 = y * y;
+        let mut beyond = [false; PLAIN_COLUMNS];
+        let mut inv = [0.0f64; PLAIN_COLUMNS];
+        let mut z_cut = [0.0f32; PLAIN_COLUMNS];
+        let mut kept = [false; PLAIN_COLUMNS];
+        for start in (0..depth.len()).step_by(PLAIN_COLUMNS) {
+            let stop = (start + PLAIN_COLUMNS).min(depth.len());
+            let (zs, xs) = (&depth[start..stop], &c.xs[start..stop]);
+            // (`x * x + y * y + 1.0` left to right, as `unit_ray`.)
+            for (k, (&z, &x)) in zs.iter().zip(xs).enumerate() {
+                let norm = (x * x + y2 + 1.0).sqrt();
+                inv[k] = 1.0 / norm;
+                beyond[k] = DepthImage::is_valid(z) && z as f64 * norm > max_range;
+            }
+            let count = beyond[..zs.len()].iter().filter(|&&b| b).count();
+            if count == 0 {
+                continue;
+            }
+            if count < CUT_IN_LANES {
+                for k in (0..zs.len()).filter(|&k| beyond[k]) {
+                    let u = (start + k) as u32;
+                    let seg = self
+                        .ray_of(u, v, zs[k])
+                        .and_then(|ray| Some((limits.hit_miss_segment(&ray, resolution)?, ray.cz)));
+                    if let Some((seg, cz)) = seg {
+                        ends[start + k] = (seg.end * cz) as f32;
+                    }
+                }
+                continue;
+            }
+            // Every column, beyond or not (the others' values go unused): no branch. The cut
+            // end is `max_range` along the ray, pulled back to where the ray enters its voxel.
+            for (k, &x) in xs.iter().enumerate() {
+                let unit = [x * inv[k], y * inv[k], inv[k]];
+                let mut enter = f64::NEG_INFINITY;
+                for a in 0..3 {
+                    let d = rotation[(a, 0)] * unit[0] + rotation[(a, 1)] * unit[1] + rotation[(a, 2)] * unit[2];
+                    let cell = ((origin[a] + max_range * d) / resolution).floor();
+                    let face = if d > 0.0 { cell } else { cell + 1.0 };
+                    let t = (face * resolution - origin[a]) / d;
+                    enter = if d != 0.0 { enter.max(t) } else { enter };
+                }
+                let end = max_range.min(enter - 1e-4 * resolution);
+                z_cut[k] = (end * inv[k]) as f32;
+                kept[k] = end > 0.0;
+            }
+            for k in 0..zs.len() {
+                if beyond[k] && kept[k] {
+                    ends[start + k] = z_cut[k];
+                }
+            }
+        }
+    }
+}
+
 /// The rays of one row's valid pixels, left to right ([`FrameRays::row`]). A named iterator
 /// so that its `next` is inlined into the caller's loop: the closure of a `filter_map` was
 /// called once per pixel and returned its 80-byte ray through memory, a third of a projected

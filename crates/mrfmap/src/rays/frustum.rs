@@ -938,8 +938,8 @@ impl<'a> View<'a> {
     }
 
     /// Splits the undecided box `b` (inside one brick) down to voxels, setting the crossed
-    /// ones in `mask`; those in `surface` (the brick's measured surfaces) are set without the
-    /// exact test. Its eight halves are judged together: their corners are 27 points, not 64.
+    /// ones in `mask`; those in `surface` (the brick's measured surfaces) are set without being
+    /// judged or tested. Its eight halves are judged together: their corners are 27 points, not 64.
     fn split_voxels(&self, b: Box3, surface: &SlotMask, mask: &mut SlotMask) {
         let half = (b.hi[0] - b.lo[0]) / 2;
         let origin = self.corner_at(b.lo);
@@ -960,14 +960,17 @@ impl<'a> View<'a> {
             let (i, j, k) = (octant & 1, octant >> 1 & 1, octant >> 2);
             let lo = [b.lo[0] + i as i32 * half, b.lo[1] + j as i32 * half, b.lo[2] + k as i32 * half];
             let child = Box3 { lo, hi: lo.map(|x| x + half) };
+            if half == 1 && mask_has(surface, VoxelKey(lo).slot()) {
+                mask_set(mask, VoxelKey(lo).slot());
+                continue;
+            }
             let corners = LOWER_CORNERS.iter().map(|c| &lattice[first + c]);
             // (Inside a brick that `split_voxels` was called for, every box is dense.)
             match self.judge(corners, true) {
                 (Seen::None, _) => {}
                 (Seen::Some, Some(footprint)) if half == 1 => {
-                    let slot = VoxelKey(lo).slot();
-                    if mask_has(surface, slot) || self.voxel_crossed(lo, &footprint) {
-                        mask_set(mask, slot);
+                    if self.voxel_crossed(lo, &footprint) {
+                        mask_set(mask, VoxelKey(lo).slot());
                     }
                 }
                 (Seen::Some, _) => self.split_voxels(child, surface, mask),

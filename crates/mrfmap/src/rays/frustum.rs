@@ -488,6 +488,9 @@ impl Segments {
 
     /// Bounds of the pixels in `rect` (of a superset of them: the pyramid level is chosen
     /// so at most 3 x 3 cells cover the rectangle).
+    /// (Inlined into [`View::judge`]: as a call returning its 16 bytes through memory it was a
+    /// tenth of a projected frame, and inlined the frame took 0.96-0.98x the time.)
+    #[inline(always)]
     fn bounds(&self, rect: &Rect) -> Bounds {
         let Rect { u0, u1, v0, v1 } = *rect;
         let span = (u1 - u0 + 1).max(v1 - v0 + 1);

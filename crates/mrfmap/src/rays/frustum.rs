@@ -1045,8 +1045,9 @@ impl<'a> View<'a> {
     /// The rectangle of pixels whose rays can meet the box with these eight corners, the
     /// box's camera-depth range, and whether its image lies wholly inside the image; `None`
     /// when no pixel can see it (behind the camera, outside the view frustum, or between
-    /// pixel centres).
-    #[inline]
+    /// pixel centres). (Inlined into its callers: as a call it was 8% of a projected frame,
+    /// and inlined the frame took 0.97-0.98x the time.)
+    #[inline(always)]
     fn footprint<'c>(&self, corners: impl Iterator<Item = &'c Corner> + Clone) -> Option<(Rect, (f32, f32), bool)> {
         let (mut z_near, mut z_far) = (f64::INFINITY, f64::NEG_INFINITY);
         let (mut u_min, mut u_max, mut v_min, mut v_max) =

@@ -103,14 +103,16 @@ fn encode_into<V: Copy + Default>(
         for w in brick.mask() {
             buf.extend_from_slice(&w.to_le_bytes());
         }
-        for (_, v) in brick.iter() {
+        let per_voxel = if meta.has_variance { 8 } else { 4 };
+        buf.reserve(per_voxel * brick.mask().iter().map(|w| w.count_ones() as usize).sum::<usize>());
+        brick.for_each_value(|v| {
             let v = convert(v);
             occupied += usize::from(v.is_occupied());
             buf.extend_from_slice(&v.occupancy.to_le_bytes());
             if meta.has_variance {
                 buf.extend_from_slice(&v.variance.to_le_bytes());
             }
-        }
+        });
         crc.update(&buf);
         out.write_all(&buf)?;
     }

@@ -356,13 +356,16 @@ impl<V: Copy + Default> Brick<V> {
 
     /// Calls `f` on every allocated value in slot order (as [`Brick::iter`]), a layer at a
     /// time: a whole layer in a plain loop, not a bit scan per voxel (free space fills whole
-    /// layers; saving a map this way made a whole 0.02 m build 0.98x the time).
+    /// layers; saving a map this way made a whole 0.02 m build 0.94x the time). (A `for`
+    /// loop, not `for_each(&mut f)`, whose call through the reference was not inlined.)
     pub fn for_each_value(&self, mut f: impl FnMut(&V)) {
         for (w, &bits) in self.mask.iter().enumerate().filter(|(_, bits)| **bits != 0) {
             let base = self.layer[w] as usize * LAYER;
             let layer = &self.values[base..base + LAYER];
             if bits == u64::MAX {
-                layer.iter().for_each(&mut f);
+                for v in layer {
+                    f(v);
+                }
                 continue;
             }
             let mut left = bits;

@@ -1324,14 +1324,21 @@ pub(super) mod tests {
 
     pub(super) fn projected(frame: &Frame, limits: &RayLimits, r: f64) -> (BTreeSet<VoxelKey>, BTreeSet<VoxelKey>) {
         let c = Projector::default().crossed_voxels(frame, limits, r, None);
-        let mut bricks = BTreeSet::new();
-        let set = c
-            .crossed
-            .iter()
-            .inspect(|(b, _)| assert!(bricks.insert(*b), "brick {b:?} twice"))
-            .flat_map(|(b, m)| mask_slots(m).map(|s| b.voxel(s)).collect::<Vec<_>>())
-            .collect();
-        (set, c.end_voxels().collect())
+        voxel_sets(&c)
+    }
+
+    /// The crossed voxels and the surface voxels of `c`, checking that each brick appears at
+    /// most once in either list, and never with an empty mask.
+    pub(super) fn voxel_sets(c: &CrossedVoxels) -> (BTreeSet<VoxelKey>, BTreeSet<VoxelKey>) {
+        for list in [&c.crossed, &c.ends] {
+            let mut bricks = BTreeSet::new();
+            for (b, m) in list {
+                assert!(bricks.insert(*b), "brick {b:?} twice");
+                assert_ne!(*m, [0; 8], "brick {b:?} with no voxel");
+            }
+        }
+        let crossed = c.crossed.iter().flat_map(|(b, m)| mask_slots(m).map(|s| b.voxel(s))).collect();
+        (crossed, c.end_voxels().collect())
     }
 
     /// The AVX2 copy of a row's filling gives the baseline copy's segments and ends bit for bit,

@@ -298,17 +298,14 @@ mod tests {
 
     use nalgebra::Vector3;
 
-    use super::super::tests::{projected, random_frame, random_limits};
+    use super::super::tests::{projected, random_frame, random_limits, voxel_sets};
     use super::*;
-    use crate::map::mask_slots;
     use crate::random::Rng;
 
     type Sets = (BTreeSet<VoxelKey>, BTreeSet<VoxelKey>);
 
     fn centres(frame: &Frame, limits: &RayLimits, r: f64) -> Sets {
-        let c = Projector::default().centre_voxels(frame, limits, r, None);
-        let free = c.crossed.iter().flat_map(|(b, m)| mask_slots(m).map(|s| b.voxel(s)).collect::<Vec<_>>()).collect();
-        (free, c.end_voxels().collect())
+        voxel_sets(&Projector::default().centre_voxels(frame, limits, r, None))
     }
 
     /// The model's definition, voxel by voxel over every voxel that could be in view, in f64

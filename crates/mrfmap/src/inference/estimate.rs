@@ -512,6 +512,50 @@ pub fn scan_extent(scans: &[RangeScan], config: &EngineConfig) -> Option<Extent>
     probe.finish(scans.len(), scans.iter().map(|s| s.beams.len()).max().unwrap_or(0) as f64)
 }
 
+/// Estimates above this are announced before a build starts ([`check_build`]).
+pub const ANNOUNCED_MEMORY: f64 = (1u64 << 30) as f64;
+
+/// An upper bound on the extent of a log-odds build of `pixels`-pixel frames from cameras at
+/// `poses` with a max range and no bounds, from the poses alone: every voxel such a build
+/// marks holds a point of a segment that ends within the max range of its camera
+/// ([`crate::rays::RayLimits::hit_miss_segment`]), so its bricks lie in the box around the
+/// cameras widened by the max range. Every count is taken as that box's (a brick's eight
+/// layers, its 512 voxels), so [`estimate_memory`] of it is at least that of any estimate of
+/// the same frames. `None` for the other engines (they keep what depends on the readings
+/// themselves), without a max range, with bounds, or without poses.
+pub fn poses_bound(poses: impl IntoIterator<Item = Pose>, pixels: f64, config: &EngineConfig) -> Option<Extent> {
+    let (EngineKind::LogOdds, Some(reach), None) = (config.kind, config.limits.max_range, &config.limits.bounds) else {
+        return None;
+    };
+    let (mut min, mut max, mut readings) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3], 0.0);
+    for pose in poses {
+        let t = pose.translation.vector;
+        for a in 0..3 {
+            (min[a], max[a]) = (min[a].min(t[a] - reach), max[a].max(t[a] + reach));
+        }
+        readings += 1.0;
+    }
+    if readings == 0.0 || !min.iter().chain(&max).all(|v| v.is_finite()) {
+        return None;
+    }
+    let r = config.resolution;
+    let (lo, hi) = (VoxelKey::from_point(min, r).brick().0, VoxelKey::from_point(max, r).brick().0);
+    let bricks: f64 = (0..3).map(|a| hi[a] as f64 - lo[a] as f64 + 1.0).product();
+    let voxels = bricks * (BRICK_EDGE * BRICK_EDGE * BRICK_EDGE) as f64;
+    Some(Extent {
+        min,
+        max,
+        bricks,
+        voxels,
+        layers: bricks * BRICK_EDGE as f64,
+        bricks_per_reading: bricks,
+        surface_bricks: bricks,
+        entries_per_reading: voxels,
+        readings,
+        pixels,
+    })
+}
+
 /// Refuses a build of `readings` frames or scans spanning `extent` into `output` whose memory
 /// estimate is over [`limits::max_memory`] (the error names the estimate, the limit and
 /// `advice`), and warns when a voxel is larger than everything the sensors saw. No extent
@@ -530,7 +574,7 @@ pub fn check_build(config: &EngineConfig, extent: Option<Extent>, output: MapOut
         extent.entries_per_reading
     );
     // Big builds say so before they start (a fine resolution can take minutes and gigabytes).
-    if estimate > (1u64 << 30) as f64 {
+    if estimate > ANNOUNCED_MEMORY {
         tracing::info!(
             "{what}: expect about {} of memory (limit {})",
             limits::human(estimate),

@@ -31,7 +31,8 @@ mod tiles;
 pub use crate::map::EngineKind;
 pub use crm::{CrmEngine, CrmParams, crm_ray_factors};
 pub use estimate::{
-    BASE_MEMORY, Extent, MapOutput, check_build, estimate_memory, frames_extent, frames_extent_loaded, scan_extent,
+    ANNOUNCED_MEMORY, BASE_MEMORY, Extent, MapOutput, check_build, estimate_memory, frames_extent,
+    frames_extent_loaded, poses_bound, scan_extent,
 };
 pub use logodds::{LogOddsEngine, LogOddsParams, Marking, SensorModel};
 pub use merge::merge;

@@ -1,6 +1,7 @@
 //! Memory checks of a build, before it starts and while it grows: a dataset's frames sized
-//! from every pose and a few decoded frames ([`dataset_extent`]), and a stream's, whose length
-//! is known only at its end, re-estimated as it doubles ([`Growth`]).
+//! from every pose and a few decoded frames, or from the poses alone where that settles the
+//! check ([`dataset_extent`]), and a stream's, whose length is known only at its end,
+//! re-estimated as it doubles ([`Growth`]).
 
 use std::borrow::Cow;
 
@@ -8,7 +9,11 @@ use rayon::prelude::*;
 
 use crate::error::{Error, Result};
 use crate::frames::{Frame, Pose};
-use crate::inference::{EngineConfig, Extent, MapOutput, check_build, frames_extent, frames_extent_loaded};
+use crate::inference::{
+    ANNOUNCED_MEMORY, EngineConfig, Extent, MapOutput, check_build, estimate_memory, frames_extent,
+    frames_extent_loaded, poses_bound,
+};
+use crate::limits;
 use crate::source::Dataset;
 
 /// Frames decoded for a memory estimate, at most.
@@ -18,7 +23,10 @@ pub const SAMPLE_FRAMES: usize = 8;
 pub const BUILD_ADVICE: &str = "use a coarser --resolution, or map less with --bounds or --max-range";
 
 /// Where the frames `indices` of `dataset` look, estimated from every pose and a few decoded
-/// frames (decoding every frame twice would double the I/O). When the few are all the frames
+/// frames (decoding every frame twice would double the I/O). Where the box of the cameras
+/// widened by the max range ([`poses_bound`], log-odds only) already settles the check, that
+/// box is the answer and no frame is decoded: a build at 0.05 m spent 4-16% of its time
+/// decoding frames for the estimate (BENCHMARKS.md, "Log-odds engine vs wavemap", session 35). When the few are all the frames
 /// (eight or fewer) and take at most 10 MiB of depth (eight 640 x 480 frames), they are decoded
 /// once, together on the pool's threads, and held while the estimate reads them: the build
 /// decodes each of them again, and the estimate's own decodes (two per frame, three for the
@@ -46,6 +54,13 @@ fn extent_holding_at_most(
     let sampled: Vec<usize> = indices.iter().step_by(step).copied().collect();
     let poses = indices.iter().map(|&i| dataset.frames()[i].pose);
     let camera = dataset.camera();
+    let pixels = f64::from(camera.width) * f64::from(camera.height);
+    if let Some(bound) = poses_bound(poses.clone(), pixels, config)
+        && bound_settles_the_check(&bound, config)
+    {
+        tracing::debug!("memory: the box of the cameras and the max range settles the check; no frame sampled");
+        return Ok(Some(bound));
+    }
     let bytes = 4.0 * f64::from(camera.width) * f64::from(camera.height) * sampled.len() as f64;
     if sampled.len() == indices.len() && bytes <= hold {
         // (The first frame that fails is the one named, whichever thread read it.)
@@ -54,6 +69,23 @@ fn extent_holding_at_most(
         return Ok(frames_extent(poses, &frames, config));
     }
     frames_extent_loaded(poses, sampled.len(), |k| dataset.frame(sampled[k]).map(Cow::Owned), config)
+}
+
+/// Whether [`check_build`] of a pose bound ([`poses_bound`]) says what it would say of the
+/// frames' own estimate, so that the frames need not be decoded for it: the bound's estimate,
+/// which is at least theirs, is within the limit and below what is announced (so the frames'
+/// is too, and neither refuses nor announces), and the cameras lie a voxel or more apart (the
+/// frames' box holds the cameras, so it is at least a voxel across, and neither warns of a
+/// map of a few voxels). Builds at 0.05 m with a max range of 6 m pass (icl-livingroom-5,
+/// icl-livingroom1, coffin-world); at 0.02 m the same box holds gigabytes' worth of bricks,
+/// and the frames are sampled as before.
+fn bound_settles_the_check(bound: &Extent, config: &EngineConfig) -> bool {
+    let estimate = [MapOutput::Saved, MapOutput::InMemory]
+        .into_iter()
+        .map(|output| estimate_memory(config, bound, output))
+        .fold(0.0, f64::max);
+    let reach = config.limits.max_range.unwrap_or(f64::INFINITY);
+    estimate <= ANNOUNCED_MEMORY.min(limits::max_memory() as f64) && bound.size() - 2.0 * reach >= config.resolution
 }
 
 /// The memory check of a streamed build: the map's estimate from the poses so far and a few
@@ -119,8 +151,8 @@ mod tests {
     /// A dataset's estimate, its sampled frames decoded together (on the pool's threads) or one
     /// at a time for each pass, is the estimate of the same frames held, for every engine (the
     /// MRF walks twice), for a long build and for a build of a few frames.
-    #[test]
-    fn a_dataset_estimate_equals_the_estimate_of_its_frames_held() {
+    /// A 20-frame orbit of a small scene, simulated into a folder named by `name`.
+    fn orbit_dataset(name: &str) -> std::path::PathBuf {
         let scene = Scene::from_toml(
             "[camera]\nfx = 40.0\nfy = 40.0\ncx = 15.5\ncy = 11.5\nwidth = 32\nheight = 24\ndepth_scale = 5000.0\n\
              [[box]]\nmin = [-1.0, -1.0, -0.1]\nmax = [1.0, 1.0, 0.0]\n\
@@ -129,9 +161,53 @@ mod tests {
             Path::new("scene.toml"),
         )
         .unwrap();
-        let dir = std::env::temp_dir().join(format!("mrfmap-estimate-{}", std::process::id()));
+        let dir = std::env::temp_dir().join(format!("mrfmap-{name}-{}", std::process::id()));
         let _ = std::fs::remove_dir_all(&dir);
         simulate(&scene, &dir, 1).unwrap();
+        dir
+    }
+
+    /// A log-odds build with a max range is checked against the box of its cameras widened by
+    /// the max range where that settles the check (coarse voxels), and against its sampled
+    /// frames where it does not (fine voxels); the bound is above the frames' estimate in every
+    /// count and in memory; other engines and builds without a max range are always sampled.
+    #[test]
+    fn a_pose_bound_stands_for_the_frames_only_where_it_settles_the_check() {
+        let dir = orbit_dataset("pose-bound");
+        let dataset = Dataset::open(&dir).unwrap();
+        let indices: Vec<usize> = (0..dataset.frames().len()).collect();
+        let poses = || indices.iter().map(|&i| dataset.frames()[i].pose);
+        let sampled = |config: &EngineConfig| extent_holding_at_most(&dataset, &indices, config, 0.0).unwrap();
+        let pixels = 32.0 * 24.0;
+        for (resolution, settles) in [(0.05, true), (0.002, false)] {
+            let mut config = EngineConfig::new(EngineKind::LogOdds, resolution);
+            config.limits.max_range = Some(3.0);
+            let (bound, frames) = (poses_bound(poses(), pixels, &config).unwrap(), sampled(&config).unwrap());
+            for (b, f) in [(bound.bricks, frames.bricks), (bound.layers, frames.layers), (bound.voxels, frames.voxels)]
+            {
+                assert!(b >= f, "{resolution}: bound {b} below the frames' {f}");
+            }
+            for output in [MapOutput::Saved, MapOutput::InMemory] {
+                assert!(estimate_memory(&config, &bound, output) >= estimate_memory(&config, &frames, output));
+            }
+            assert_eq!(bound_settles_the_check(&bound, &config), settles, "{resolution}");
+            let expected = if settles { bound } else { frames };
+            assert_eq!(dataset_extent(&dataset, &indices, &config).unwrap(), Some(expected), "{resolution}");
+            // Without a max range, or for another engine: no bound.
+            config.limits.max_range = None;
+            assert!(poses_bound(poses(), pixels, &config).is_none());
+            for kind in [EngineKind::Crm, EngineKind::Mrf] {
+                let mut other = EngineConfig::new(kind, resolution);
+                other.limits.max_range = Some(3.0);
+                assert!(poses_bound(poses(), pixels, &other).is_none(), "{kind:?}");
+            }
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn a_dataset_estimate_equals_the_estimate_of_its_frames_held() {
+        let dir = orbit_dataset("estimate");
         // (A noise-free scene writes no noise model: a zero one made the dataset unreadable.)
         assert!(!dir.join("noise.toml").exists());
         let dataset = Dataset::open(&dir).unwrap();

@@ -139,6 +139,8 @@ impl Projector {
         view.split_bricks(root, &mut crossed, &mut undecided);
         // The surfaces' voxels by brick: an undecided voxel among them needs no exact test, as
         // a voxel both crossed and a surface in one frame counts as a surface.
+        #[cfg(target_arch = "x86_64")]
+        let avx2 = std::is_x86_feature_detected!("avx2");
         let mut ends_by_brick: FxHashMap<BrickKey, SlotMask> = FxHashMap::default();
         for key in ends {
             mask_set(ends_by_brick.entry(key.brick()).or_default(), key.slot());
@@ -149,7 +151,13 @@ impl Projector {
                 walk_brick(&rays, limits, resolution, brick, &footprint.rect, &mut mask);
             } else {
                 let surface = ends_by_brick.get(&brick).copied().unwrap_or_default();
-                view.split_voxels(Box3::of_brick(brick), &surface, &mut mask);
+                #[cfg(target_arch = "x86_64")]
+                if avx2 {
+                    // SAFETY: the processor has AVX2, checked above.
+                    unsafe { view.split_voxels_avx2(Box3::of_brick(brick), &surface, &mut mask) };
+                    return (mask != [0; 8]).then_some((brick, mask));
+                }
+                view.split_voxels_baseline(Box3::of_brick(brick), &surface, &mut mask);
             }
             (mask != [0; 8]).then_some((brick, mask))
         }));
@@ -623,6 +631,85 @@ segments_row!(
     segments_row_avx2
 );
 
+/// Defines under `$name` the splitting of an undecided box inside one brick down to voxels,
+/// setting the crossed ones in `mask`: those in `surface` (the brick's measured surfaces) as
+/// they are, the others by the exact test ([`View::voxel_crossed`]). A box's eight halves are
+/// judged together, unless they are voxels: their corners are 27 points, not 64. One source
+/// for the copy built for the binary's baseline and the copy built for AVX2, picked at run
+/// time by [`Projector::crossed_voxels`]; the recursion stays in its copy, and the exact test
+/// is inlined into it (compiled with its features: its divisions and slab tests four lanes
+/// wide). The AVX2 copy took 0.94-0.97x the time of a frame at 0.02 m (BENCHMARKS.md, "Log-odds
+/// engine vs wavemap", session 35).
+macro_rules! split_voxels {
+    ($(#[$attr:meta])* $name:ident) => {
+        impl View<'_> {
+            $(#[$attr])*
+            fn $name(&self, b: Box3, surface: &SlotMask, mask: &mut SlotMask) {
+                let half = (b.hi[0] - b.lo[0]) / 2;
+                let origin = self.corner_at(b.lo);
+                let step = self.step.map(|s| s.map(|c| c * half as f64));
+                // Corner (i, j, k) of the 3 x 3 x 3 lattice is `lattice[i + 3 j + 9 k]` (nested loops:
+                // the index arithmetic of one loop over 27 was a twentieth of a projected frame).
+                let mut lattice = [Corner::default(); 27];
+                for k in 0..3 {
+                    for j in 0..3 {
+                        for i in 0..3 {
+                            let (fi, fj, fk) = (i as f64, j as f64, k as f64);
+                            let p = |c: usize| origin[c] + fi * step[0][c] + fj * step[1][c] + fk * step[2][c];
+                            lattice[i + 3 * j + 9 * k] = self.corner([p(0), p(1), p(2)]);
+                        }
+                    }
+                }
+                for (octant, first) in LOWER_CORNERS.into_iter().enumerate() {
+                    let (i, j, k) = (octant & 1, octant >> 1 & 1, octant >> 2);
+                    let lo = [b.lo[0] + i as i32 * half, b.lo[1] + j as i32 * half, b.lo[2] + k as i32 * half];
+                    let corners = LOWER_CORNERS.iter().map(|c| &lattice[first + c]);
+                    if half == 1 {
+                        // A voxel is not judged: the exact test reads the same depth bounds block by
+                        // block of its footprint first, and reading them for the whole footprint as
+                        // well cost more than the voxels that decided (a frame took 0.92-0.96x the
+                        // time without).
+                        let slot = VoxelKey(lo).slot();
+                        if mask_has(surface, slot)
+                            || self.footprint(corners).is_some_and(|(rect, depths, _)| self.voxel_crossed(lo, &rect, depths))
+                        {
+                            mask_set(mask, slot);
+                        }
+                        continue;
+                    }
+                    let child = Box3 { lo, hi: lo.map(|x| x + half) };
+                    // (Inside a brick that `split_voxels` was called for, every box is dense.)
+                    match self.judge(corners, true) {
+                        (Seen::None, _) => {}
+                        (Seen::Some, _) => self.$name(child, surface, mask),
+                        (Seen::All, _) => {
+                            for z in child.lo[2]..child.hi[2] {
+                                for y in child.lo[1]..child.hi[1] {
+                                    for x in child.lo[0]..child.hi[0] {
+                                        mask_set(mask, VoxelKey([x, y, z]).slot());
+                                    }
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    };
+}
+
+split_voxels!(
+    /// [`split_voxels!`] for any processor.
+    split_voxels_baseline
+);
+
+split_voxels!(
+    /// [`split_voxels!`] compiled for AVX2.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    split_voxels_avx2
+);
+
 /// One row of the next pyramid level from two rows of this one, `w` wide, read by `upper(x)`
 /// and `lower(x)` (`lower` is `upper` again for an odd last row; an odd last column pairs with
 /// itself).
@@ -938,61 +1025,6 @@ impl<'a> View<'a> {
         }
     }
 
-    /// Splits the undecided box `b` (inside one brick) down to voxels, setting the crossed
-    /// ones in `mask`: those in `surface` (the brick's measured surfaces) as they are, the
-    /// others by the exact test ([`View::voxel_crossed`]). Its eight halves are judged
-    /// together, unless they are voxels: their corners are 27 points, not 64.
-    fn split_voxels(&self, b: Box3, surface: &SlotMask, mask: &mut SlotMask) {
-        let half = (b.hi[0] - b.lo[0]) / 2;
-        let origin = self.corner_at(b.lo);
-        let step = self.step.map(|s| s.map(|c| c * half as f64));
-        // Corner (i, j, k) of the 3 x 3 x 3 lattice is `lattice[i + 3 j + 9 k]` (nested loops:
-        // the index arithmetic of one loop over 27 was a twentieth of a projected frame).
-        let mut lattice = [Corner::default(); 27];
-        for k in 0..3 {
-            for j in 0..3 {
-                for i in 0..3 {
-                    let (fi, fj, fk) = (i as f64, j as f64, k as f64);
-                    let p = |c: usize| origin[c] + fi * step[0][c] + fj * step[1][c] + fk * step[2][c];
-                    lattice[i + 3 * j + 9 * k] = self.corner([p(0), p(1), p(2)]);
-                }
-            }
-        }
-        for (octant, first) in LOWER_CORNERS.into_iter().enumerate() {
-            let (i, j, k) = (octant & 1, octant >> 1 & 1, octant >> 2);
-            let lo = [b.lo[0] + i as i32 * half, b.lo[1] + j as i32 * half, b.lo[2] + k as i32 * half];
-            let corners = LOWER_CORNERS.iter().map(|c| &lattice[first + c]);
-            if half == 1 {
-                // A voxel is not judged: the exact test reads the same depth bounds block by
-                // block of its footprint first, and reading them for the whole footprint as
-                // well cost more than the voxels that decided (a frame took 0.92-0.96x the
-                // time without).
-                let slot = VoxelKey(lo).slot();
-                if mask_has(surface, slot)
-                    || self.footprint(corners).is_some_and(|(rect, depths, _)| self.voxel_crossed(lo, &rect, depths))
-                {
-                    mask_set(mask, slot);
-                }
-                continue;
-            }
-            let child = Box3 { lo, hi: lo.map(|x| x + half) };
-            // (Inside a brick that `split_voxels` was called for, every box is dense.)
-            match self.judge(corners, true) {
-                (Seen::None, _) => {}
-                (Seen::Some, _) => self.split_voxels(child, surface, mask),
-                (Seen::All, _) => {
-                    for z in child.lo[2]..child.hi[2] {
-                        for y in child.lo[1]..child.hi[1] {
-                            for x in child.lo[0]..child.hi[0] {
-                                mask_set(mask, VoxelKey([x, y, z]).slot());
-                            }
-                        }
-                    }
-                }
-            }
-        }
-    }
-
     /// Camera-frame position of grid corner `key`.
     fn corner_at(&self, key: [i32; 3]) -> [f64; 3] {
         self.point_at(key.map(|k| k as f64))
@@ -1149,6 +1181,7 @@ impl<'a> View<'a> {
 
     /// The exact test for one voxel, seen by the pixels of `rect` and lying between camera
     /// depths `z_near` and `z_far`: does the segment of some pixel in `rect` pass through it?
+    #[inline(always)] // (into both copies of `split_voxels!`: as a call it stayed a baseline one)
     fn voxel_crossed(&self, key: [i32; 3], rect: &Rect, (z_near, z_far): (f32, f32)) -> bool {
         let r = self.resolution;
         let lo: [f32; 3] = std::array::from_fn(|a| (key[a] as f64 * r - self.origin[a]) as f32);
@@ -1339,6 +1372,43 @@ pub(super) mod tests {
         }
         let crossed = c.crossed.iter().flat_map(|(b, m)| mask_slots(m).map(|s| b.voxel(s))).collect();
         (crossed, c.end_voxels().collect())
+    }
+
+    /// The AVX2 copy of the box splitting marks the baseline copy's voxels, brick by brick, on
+    /// random frames with and without limits. (Every other test runs the copy this machine
+    /// picks; this one runs both.)
+    #[test]
+    fn both_copies_of_the_box_splitting_agree() {
+        #[cfg(target_arch = "x86_64")]
+        if std::is_x86_feature_detected!("avx2") {
+            let (mut rng, mut split, mut tested) = (Rng::new(17), 0, 0);
+            for case in 0..30 {
+                let frame = random_frame(&mut rng);
+                let r = rng.range(0.02, 0.2);
+                let limits = random_limits(case, &mut rng);
+                let mut cache = CameraRays::default();
+                let rays = FrameRays::with_camera_rays(&frame, &mut cache);
+                let mut seg = Segments::default();
+                seg.fill(&rays, &limits, r);
+                let Some((view, root)) = View::over(&rays, &seg, &limits, r, None) else { continue };
+                let (mut crossed, mut undecided) = (Vec::new(), Vec::new());
+                view.split_bricks(root, &mut crossed, &mut undecided);
+                for (brick, footprint) in undecided.into_iter().filter(|(_, f)| f.dense) {
+                    let surface = [0x5555_5555_5555_5555u64; 8];
+                    let (mut base, mut fast) = ([0u64; 8], [0u64; 8]);
+                    view.split_voxels_baseline(Box3::of_brick(brick), &surface, &mut base);
+                    // SAFETY: the processor has AVX2, checked above.
+                    unsafe { view.split_voxels_avx2(Box3::of_brick(brick), &surface, &mut fast) };
+                    assert_eq!(base, fast, "case {case}, brick {brick:?}, {:?}", footprint.rect);
+                    split += 1;
+                    tested += base.iter().zip(&surface).any(|(b, s)| b & !s != 0) as usize;
+                }
+            }
+            // (Bricks with voxels set beyond the surfaces: the exact test passed there.)
+            assert!(split >= 50 && tested >= 20, "{split} bricks split, {tested} with crossed voxels");
+            return;
+        }
+        eprintln!("skipped: this processor has no AVX2, only the baseline copy runs");
     }
 
     /// The AVX2 copy of a row's filling gives the baseline copy's segments and ends bit for bit,

@@ -26,12 +26,12 @@ pub const BUILD_ADVICE: &str = "use a coarser --resolution, or map less with --b
 /// frames (decoding every frame twice would double the I/O). Where the box of the cameras
 /// widened by the max range ([`poses_bound`], log-odds only) already settles the check, that
 /// box is the answer and no frame is decoded: a build at 0.05 m spent 4-16% of its time
-/// decoding frames for the estimate (BENCHMARKS.md, "Log-odds engine vs wavemap", session 35). When the few are all the frames
-/// (eight or fewer) and take at most 10 MiB of depth (eight 640 x 480 frames), they are decoded
-/// once, together on the pool's threads, and held while the estimate reads them: the build
-/// decodes each of them again, and the estimate's own decodes (two per frame, three for the
-/// MRF) were most of all. Otherwise they
-/// are decoded one at a time, again for each of the estimate's passes
+/// decoding frames for the estimate (BENCHMARKS.md, "Log-odds engine vs wavemap", session
+/// 35). When the few are all the frames (eight or fewer) and take at most 10 MiB of depth
+/// (eight 640 x 480 frames), they are decoded once, together on the pool's threads, and held
+/// while the estimate reads them: the build decodes each of them again, and the estimate's own
+/// decodes (two per frame, three for the MRF) were most of all. Otherwise they are decoded one
+/// at a time, again for each of the estimate's passes
 /// ([`frames_extent_loaded`]): there they are a small share of the decodes, and eight frames
 /// held set a small map's peak (icl-livingroom1 at 0.05 m: 17.0 MiB where the build alone
 /// peaks at 12.4; BENCHMARKS.md, "Log-odds engine vs wavemap", session 34).
@@ -61,7 +61,7 @@ fn extent_holding_at_most(
         tracing::debug!("memory: the box of the cameras and the max range settles the check; no frame sampled");
         return Ok(Some(bound));
     }
-    let bytes = 4.0 * f64::from(camera.width) * f64::from(camera.height) * sampled.len() as f64;
+    let bytes = 4.0 * pixels * sampled.len() as f64;
     if sampled.len() == indices.len() && bytes <= hold {
         // (The first frame that fails is the one named, whichever thread read it.)
         let decoded: Vec<Result<Frame>> = sampled.par_iter().map(|&i| dataset.frame(i)).collect();
@@ -148,9 +148,6 @@ mod tests {
     use crate::inference::EngineKind;
     use crate::source::{Scene, simulate};
 
-    /// A dataset's estimate, its sampled frames decoded together (on the pool's threads) or one
-    /// at a time for each pass, is the estimate of the same frames held, for every engine (the
-    /// MRF walks twice), for a long build and for a build of a few frames.
     /// A 20-frame orbit of a small scene, simulated into a folder named by `name`.
     fn orbit_dataset(name: &str) -> std::path::PathBuf {
         let scene = Scene::from_toml(
@@ -205,6 +202,9 @@ mod tests {
         std::fs::remove_dir_all(&dir).unwrap();
     }
 
+    /// A dataset's estimate, its sampled frames decoded together (on the pool's threads) or one
+    /// at a time for each pass, is the estimate of the same frames held, for every engine (the
+    /// MRF walks twice), for a long build and for a build of a few frames.
     #[test]
     fn a_dataset_estimate_equals_the_estimate_of_its_frames_held() {
         let dir = orbit_dataset("estimate");

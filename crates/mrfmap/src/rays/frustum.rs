@@ -139,8 +139,6 @@ impl Projector {
         view.split_bricks(root, &mut crossed, &mut undecided);
         // The surfaces' voxels by brick: an undecided voxel among them needs no exact test, as
         // a voxel both crossed and a surface in one frame counts as a surface.
-        #[cfg(target_arch = "x86_64")]
-        let avx2 = std::is_x86_feature_detected!("avx2");
         let mut ends_by_brick: FxHashMap<BrickKey, SlotMask> = FxHashMap::default();
         for key in ends {
             mask_set(ends_by_brick.entry(key.brick()).or_default(), key.slot());
@@ -151,13 +149,7 @@ impl Projector {
                 walk_brick(&rays, limits, resolution, brick, &footprint.rect, &mut mask);
             } else {
                 let surface = ends_by_brick.get(&brick).copied().unwrap_or_default();
-                #[cfg(target_arch = "x86_64")]
-                if avx2 {
-                    // SAFETY: the processor has AVX2, checked above.
-                    unsafe { view.split_voxels_avx2(Box3::of_brick(brick), &surface, &mut mask) };
-                    return (mask != [0; 8]).then_some((brick, mask));
-                }
-                view.split_voxels_baseline(Box3::of_brick(brick), &surface, &mut mask);
+                view.split_voxels(Box3::of_brick(brick), &surface, &mut mask);
             }
             (mask != [0; 8]).then_some((brick, mask))
         }));
@@ -636,7 +628,7 @@ segments_row!(
 /// they are, the others by the exact test ([`View::voxel_crossed`]). A box's eight halves are
 /// judged together, unless they are voxels: their corners are 27 points, not 64. One source
 /// for the copy built for the binary's baseline and the copy built for AVX2, picked at run
-/// time by [`Projector::crossed_voxels`]; the recursion stays in its copy, and the exact test
+/// time by [`View::split_voxels`]; the recursion stays in its copy, and the exact test
 /// is inlined into it (compiled with its features: its divisions and slab tests four lanes
 /// wide). The AVX2 copy took 0.94-0.97x the time of a frame at 0.02 m (BENCHMARKS.md, "Log-odds
 /// engine vs wavemap", session 35).
@@ -1025,6 +1017,16 @@ impl<'a> View<'a> {
         }
     }
 
+    /// [`split_voxels!`] in the copy for this processor.
+    fn split_voxels(&self, b: Box3, surface: &SlotMask, mask: &mut SlotMask) {
+        #[cfg(target_arch = "x86_64")]
+        if std::is_x86_feature_detected!("avx2") {
+            // SAFETY: the processor has AVX2, checked just above.
+            return unsafe { self.split_voxels_avx2(b, surface, mask) };
+        }
+        self.split_voxels_baseline(b, surface, mask)
+    }
+
     /// Camera-frame position of grid corner `key`.
     fn corner_at(&self, key: [i32; 3]) -> [f64; 3] {
         self.point_at(key.map(|k| k as f64))
@@ -1322,6 +1324,23 @@ pub(super) mod tests {
         Frame { index: 0, timestamp: 0.0, depth, pose, camera, noise: None }
     }
 
+    /// Calls `f(case, rays, limits, resolution)` for 30 cases of [`random_frame`] and
+    /// [`random_limits`] from seed `seed`, at resolutions drawn from `(lo, hi)`.
+    pub(super) fn for_random_cases(
+        seed: u64,
+        (lo, hi): (f64, f64),
+        mut f: impl FnMut(usize, &FrameRays, &RayLimits, f64),
+    ) {
+        let mut rng = Rng::new(seed);
+        for case in 0..30 {
+            let frame = random_frame(&mut rng);
+            let r = rng.range(lo, hi);
+            let limits = random_limits(case, &mut rng);
+            let mut cache = CameraRays::default();
+            f(case, &FrameRays::with_camera_rays(&frame, &mut cache), &limits, r);
+        }
+    }
+
     /// Limits by `case % 3`: none, a random max range, or random bounds around the cameras of
     /// [`random_frame`].
     pub(super) fn random_limits(case: usize, rng: &mut Rng) -> RayLimits {
@@ -1381,16 +1400,11 @@ pub(super) mod tests {
     fn both_copies_of_the_box_splitting_agree() {
         #[cfg(target_arch = "x86_64")]
         if std::is_x86_feature_detected!("avx2") {
-            let (mut rng, mut split, mut tested) = (Rng::new(17), 0, 0);
-            for case in 0..30 {
-                let frame = random_frame(&mut rng);
-                let r = rng.range(0.02, 0.2);
-                let limits = random_limits(case, &mut rng);
-                let mut cache = CameraRays::default();
-                let rays = FrameRays::with_camera_rays(&frame, &mut cache);
+            let (mut split, mut tested) = (0, 0);
+            for_random_cases(17, (0.02, 0.2), |case, rays, limits, r| {
                 let mut seg = Segments::default();
-                seg.fill(&rays, &limits, r);
-                let Some((view, root)) = View::over(&rays, &seg, &limits, r, None) else { continue };
+                seg.fill(rays, limits, r);
+                let Some((view, root)) = View::over(rays, &seg, limits, r, None) else { return };
                 let (mut crossed, mut undecided) = (Vec::new(), Vec::new());
                 view.split_bricks(root, &mut crossed, &mut undecided);
                 for (brick, footprint) in undecided.into_iter().filter(|(_, f)| f.dense) {
@@ -1403,7 +1417,7 @@ pub(super) mod tests {
                     split += 1;
                     tested += base.iter().zip(&surface).any(|(b, s)| b & !s != 0) as usize;
                 }
-            }
+            });
             // (Bricks with voxels set beyond the surfaces: the exact test passed there.)
             assert!(split >= 50 && tested >= 20, "{split} bricks split, {tested} with crossed voxels");
             return;
@@ -1418,28 +1432,23 @@ pub(super) mod tests {
     fn both_copies_of_a_segments_row_agree() {
         #[cfg(target_arch = "x86_64")]
         if std::is_x86_feature_detected!("avx2") {
-            let (mut rng, mut with_segments) = (Rng::new(5), 0);
-            for case in 0..30 {
-                let frame = random_frame(&mut rng);
-                let r = rng.range(0.03, 0.25);
-                let limits = random_limits(case, &mut rng);
-                let mut cache = CameraRays::default();
-                let rays = FrameRays::with_camera_rays(&frame, &mut cache);
+            let mut with_segments = 0;
+            for_random_cases(5, (0.03, 0.25), |case, rays, limits, r| {
                 let (mut base, mut fast) = (Segments::default(), Segments::default());
                 let starts = limits.bounds.is_some();
                 let base_ends = base.fill_with(rays.size(), starts, |v, p, e, a| {
-                    segments_row_baseline::<false>(&rays, &limits, r, v, p, e, a)
+                    segments_row_baseline::<false>(rays, limits, r, v, p, e, a)
                 });
                 // SAFETY: the processor has AVX2, checked above.
                 let fast_ends = fast.fill_with(rays.size(), starts, |v, p, e, a| unsafe {
-                    segments_row_avx2::<false>(&rays, &limits, r, v, p, e, a)
+                    segments_row_avx2::<false>(rays, limits, r, v, p, e, a)
                 });
                 let bits = |x: &[f32]| x.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
                 assert_eq!(bits(&base.ends), bits(&fast.ends), "case {case}");
                 assert_eq!(bits(&base.starts), bits(&fast.starts), "case {case}");
                 assert_eq!(base_ends, fast_ends, "case {case}");
                 with_segments += base.ends.iter().any(|e| e.is_finite()) as usize;
-            }
+            });
             assert!(with_segments >= 20, "{with_segments} of 30 frames have segments");
             return;
         }

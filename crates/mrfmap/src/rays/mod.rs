@@ -603,15 +603,19 @@ impl Segment {
     /// averaged over the stretch cut off (with nothing there, a ray would force its surface
     /// into the last voxels inside). A beam with no return: 1, the light passed it all.
     pub fn beyond(&self, ray: &PixelRay, noise: &NoiseModel, likelihood: &mut RayLikelihood, voxel: f64) -> f64 {
+        self.beyond_stretch(ray, noise, voxel).map_or(1.0, |(z0, z1)| likelihood.over(z0, z1))
+    }
+
+    /// The camera z-depths [`Segment::beyond`] takes the likelihood over, `None` for a beam
+    /// with no return (whose term is 1): for a caller that computes it with others.
+    #[inline]
+    pub fn beyond_stretch(&self, ray: &PixelRay, noise: &NoiseModel, voxel: f64) -> Option<(f64, f64)> {
         let z_end = self.end * ray.cz;
         let next = z_end + voxel * ray.cz;
         if self.hits_surface {
-            return likelihood.over(z_end, next);
+            return Some((z_end, next));
         }
-        if !ray.returned {
-            return 1.0;
-        }
-        likelihood.over(z_end, forward_model_end(ray, noise).max(next))
+        ray.returned.then(|| (z_end, forward_model_end(ray, noise).max(next)))
     }
 }
 

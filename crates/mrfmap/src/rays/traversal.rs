@@ -249,15 +249,15 @@ impl Walk {
                     tz
                 };
                 let slot = (lx | ly << 3 | lz << 6) as usize;
-                if exit >= s_end {
-                    if s_end > s {
-                        visit(ctx, h, slot, s, s_end);
-                    }
-                    return;
+                // (One call of `visit`, for the last voxel too: the MRF's trace inlines it.)
+                let last = exit >= s_end;
+                let end = if last { s_end } else { exit };
+                if end > s {
+                    visit(ctx, h, slot, s, end);
+                    s = end;
                 }
-                if exit > s {
-                    visit(ctx, h, slot, s, exit);
-                    s = exit;
+                if last {
+                    return;
                 }
                 // One axis steps; past the brick's side, the walk is in the next brick.
                 // (Scalars per axis, as in `crossings`: no array indexed by axis in the loop.)

@@ -77,25 +77,84 @@ pub const MAX_LOG_ODDS: f64 = 20.723_265_836_146_06; // ln((1 - MU_EPS) / MU_EPS
 /// vectorised pass at the end.
 #[inline(always)] // (so that the AVX2 copy of a tile trace has it in four lanes)
 pub fn ray_log_messages(odds: &[f64], nu: &[f64], nu_beyond: f64, bound: f64, out: &mut Vec<f64>) {
-    let n = odds.len();
-    debug_assert_eq!(n, nu.len());
+    debug_assert_eq!(odds.len(), nu.len());
     out.clear();
-    out.resize(n, 0.0);
+    out.resize(odds.len(), 0.0);
     // Backward pass: T_i stored in `out` temporarily.
     let mut t = nu_beyond;
-    for i in (0..n).rev() {
-        out[i] = t;
-        let q = 1.0 / (1.0 + odds[i]); // 1 - mu
-        t = q * t + odds[i] * q * nu[i];
+    for v in odds.iter().zip(nu).zip(out.iter_mut()).rev() {
+        t = suffix_step(v, t);
     }
     // Forward pass with the rescaled prefix a_i = A_i / V_i.
     let mut a = 0.0f64;
-    for i in 0..n {
-        let (m1, m0) = (a + nu[i], a + out[i]);
-        out[i] = m1 / m0; // (0 / 0 = NaN where the ray says nothing: log-odds 0)
-        a = (a * (1.0 + odds[i]) + odds[i] * nu[i]).min(A_CAP);
+    for v in odds.iter().zip(nu).zip(out.iter_mut()) {
+        a = prefix_step(v, a);
     }
     ln_clamped_in_place(out, bound);
+}
+
+/// One ray's factor for [`ray_log_messages_pair`]: [`ray_log_messages`]'s arguments.
+pub(crate) struct RayFactor<'a> {
+    pub odds: &'a [f64],
+    pub nu: &'a [f64],
+    pub nu_beyond: f64,
+    pub out: &'a mut Vec<f64>,
+}
+
+/// [`ray_log_messages`] of two rays, each's messages bit for bit what it alone gives. Each
+/// recursion is a chain of dependent multiplies and adds, one link per voxel, that the
+/// processor cannot overlap with itself; two rays' chains side by side it overlaps.
+#[inline(always)] // (as `ray_log_messages`)
+pub(crate) fn ray_log_messages_pair(a: RayFactor, b: RayFactor, bound: f64) {
+    let m = a.odds.len().min(b.odds.len());
+    for f in [&a, &b] {
+        debug_assert_eq!(f.odds.len(), f.nu.len());
+    }
+    let (a_out, b_out) = (a.out, b.out);
+    for (f, out) in [(a.odds, &mut *a_out), (b.odds, &mut *b_out)] {
+        out.clear();
+        out.resize(f.len(), 0.0);
+    }
+    // Backward, from each ray's end: side by side over the last `m` voxels of each, then the
+    // rest of the longer alone.
+    let (mut ta, mut tb) = (a.nu_beyond, b.nu_beyond);
+    let mut ia = a.odds.iter().zip(a.nu).zip(a_out.iter_mut()).rev();
+    let mut ib = b.odds.iter().zip(b.nu).zip(b_out.iter_mut()).rev();
+    for (va, vb) in ia.by_ref().take(m).zip(ib.by_ref().take(m)) {
+        ta = suffix_step(va, ta);
+        tb = suffix_step(vb, tb);
+    }
+    ia.for_each(|v| ta = suffix_step(v, ta));
+    ib.for_each(|v| tb = suffix_step(v, tb));
+    // Forward, from each ray's start.
+    let (mut pa, mut pb) = (0.0f64, 0.0f64);
+    let mut ia = a.odds.iter().zip(a.nu).zip(a_out.iter_mut());
+    let mut ib = b.odds.iter().zip(b.nu).zip(b_out.iter_mut());
+    for (va, vb) in ia.by_ref().take(m).zip(ib.by_ref().take(m)) {
+        pa = prefix_step(va, pa);
+        pb = prefix_step(vb, pb);
+    }
+    ia.for_each(|v| pa = prefix_step(v, pa));
+    ib.for_each(|v| pb = prefix_step(v, pb));
+    ln_clamped_in_place(a_out, bound);
+    ln_clamped_in_place(b_out, bound);
+}
+
+/// One voxel of the backward pass: stores `T_i` (`t`) in `out` and returns `T_{i-1}`.
+#[inline(always)]
+fn suffix_step(((&odds, &nu), out): ((&f64, &f64), &mut f64), t: f64) -> f64 {
+    *out = t;
+    let q = 1.0 / (1.0 + odds); // 1 - mu
+    q * t + odds * q * nu
+}
+
+/// One voxel of the forward pass: turns `T_i` in `out` into `m1_i / m0_i` with the prefix
+/// `a` (`a_i`), and returns `a_{i+1}`.
+#[inline(always)]
+fn prefix_step(((&odds, &nu), out): ((&f64, &f64), &mut f64), a: f64) -> f64 {
+    let (m1, m0) = (a + nu, a + *out);
+    *out = m1 / m0; // (0 / 0 = NaN where the ray says nothing: log-odds 0)
+    (a * (1.0 + odds) + odds * nu).min(A_CAP)
 }
 
 #[cfg(test)]
@@ -176,5 +235,37 @@ mod tests {
         nu[1000] = 20.0;
         ray_messages(&mu, &nu, 0.0, &mut out);
         assert!(out[10] < 0.2 && out[999] < 0.2 && out[1000] > 0.9, "{} {} {}", out[10], out[999], out[1000]);
+    }
+
+    /// Two rays' messages side by side are each ray's alone, bit for bit: rays of every pair
+    /// of lengths (none included), either the longer, with zero likelihoods and beyond terms.
+    #[test]
+    fn a_pair_of_rays_gives_each_rays_own_messages() {
+        fn factor<'a>(r: &'a (Vec<f64>, Vec<f64>, f64), out: &'a mut Vec<f64>) -> RayFactor<'a> {
+            RayFactor { odds: &r.0, nu: &r.1, nu_beyond: r.2, out }
+        }
+        let mut rng = Rng::new(31);
+        let mut ray = |n: usize| {
+            let odds: Vec<f64> = (0..n).map(|_| rng.range(-20.0, 20.0).exp()).collect();
+            let nu: Vec<f64> =
+                (0..n).map(|_| if rng.uniform() < 0.3 { 0.0 } else { 10f64.powf(rng.range(-6.0, 2.0)) }).collect();
+            let beyond = if rng.uniform() < 0.3 { 0.0 } else { rng.range(0.0, 3.0) };
+            (odds, nu, beyond)
+        };
+        let (mut alone, mut pair) = ((Vec::new(), Vec::new()), (Vec::new(), Vec::new()));
+        let mut differ = 0;
+        for na in 0..9 {
+            for nb in [0, 1, 2, 5, 8, 40] {
+                let (a, b) = (ray(na), ray(nb));
+                ray_log_messages(&a.0, &a.1, a.2, 20.0, &mut alone.0);
+                ray_log_messages(&b.0, &b.1, b.2, 20.0, &mut alone.1);
+                ray_log_messages_pair(factor(&a, &mut pair.0), factor(&b, &mut pair.1), 20.0);
+                let bits = |v: &Vec<f64>| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                assert_eq!(bits(&alone.0), bits(&pair.0), "lengths {na} and {nb}: the first ray");
+                assert_eq!(bits(&alone.1), bits(&pair.1), "lengths {na} and {nb}: the second ray");
+                differ += alone.0.iter().zip(&alone.1).filter(|(x, y)| x != y).count();
+            }
+        }
+        assert!(differ > 100, "the two rays' messages differ in only {differ} places");
     }
 }

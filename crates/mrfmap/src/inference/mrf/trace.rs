@@ -1,11 +1,12 @@
 //! Tracing tiles: every ray of a tile with its cavities, the ray factor's messages
-//! ([`super::ray_log_messages`]), and the tile's new entries, damped against its old ones; then
-//! their changes applied to the sums in tile order.
+//! ([`super::ray_log_messages`], two rays' at a time), and the tile's new entries, damped
+//! against its old ones; then their changes applied to the sums in tile order.
 
 use rayon::prelude::*;
 use rustc_hash::FxHashMap;
 
 use super::MrfEngine;
+use super::messages::{RayFactor, ray_log_messages_pair};
 use super::schedule::RunReport;
 use super::tiles::{CALM_TRACES, Entry, Keyframe, MAX_DAMPING_LEVEL, Tile, f32_at_most};
 use super::{MAX_LOG_ODDS, ray_log_messages};
@@ -67,7 +68,9 @@ struct TileScratch<'a> {
     /// The first `used` are in use (the rest are kept for reuse).
     tables: Vec<SlotTable<'a>>,
     used: usize,
-    ray: RayScratch,
+    /// Two rays' buffers: a ray whose messages wait for the next one's ([`RayScratch::ready`]),
+    /// and the ray being walked.
+    rays: [RayScratch; 2],
 }
 
 /// [`TileScratch::bricks`] value of a brick that is not allocated.
@@ -107,7 +110,7 @@ impl Default for TileScratch<'_> {
             recent: Box::new([(NO_BRICK, 0); RECENT]),
             tables: Vec::new(),
             used: 0,
-            ray: RayScratch::default(),
+            rays: Default::default(),
         }
     }
 }
@@ -124,7 +127,7 @@ impl<'a> TileScratch<'a> {
         self.bricks.clear();
         self.recent.fill((NO_BRICK, 0));
         self.voxels.clear();
-        self.ray.clear();
+        self.rays.iter_mut().for_each(RayScratch::clear);
     }
 
     /// The table of brick `key` with its sums in `grid`, `None` if the brick is not allocated
@@ -238,6 +241,14 @@ struct RayScratch {
     cavity: Vec<f64>,
     nu: Intervals,
     out: Vec<f64>,
+    /// Set once the cavities are odds and the likelihood is known (`nu`): where it starts
+    /// (the voxels before get `free`), the likelihood beyond the last voxel, and the lengths'
+    /// weight per metre of z-depth.
+    ready: bool,
+    first: usize,
+    free: f64,
+    beyond: f64,
+    per_z: f64,
 }
 
 impl RayScratch {
@@ -246,6 +257,19 @@ impl RayScratch {
             v.clear();
         }
         self.slots.clear();
+        self.ready = false;
+    }
+
+    /// The ray's factor from the first voxel with any likelihood on (of a `ready` ray).
+    #[inline(always)]
+    fn factor(&mut self) -> RayFactor<'_> {
+        let first = self.first;
+        RayFactor {
+            odds: &self.cavity[first..],
+            nu: &self.nu.density[first..],
+            nu_beyond: self.beyond,
+            out: &mut self.out,
+        }
     }
 }
 
@@ -328,14 +352,14 @@ impl MrfEngine {
     }
 }
 
-/// Defines a tile trace under `$name` (documented by `$doc`), and the messages of one of its
-/// rays under `$msgs`, both with the attributes `$attr`: one source for the copy built for the
-/// binary's baseline (SSE2 on x86-64) and the copy built for AVX2, picked at run time by
+/// Defines a tile trace under `$name` (documented by `$doc`), and the two parts of its rays'
+/// messages under `$prep` and `$msgs`, all with the attributes `$attr`: one source for the copy
+/// built for the binary's baseline (SSE2 on x86-64) and the copy built for AVX2, picked at run time by
 /// [`MrfEngine::trace_tile`]. The closures in a `target_feature` function are compiled with its
 /// features; a body shared through an inlined function would keep its closures (the voxel
 /// walk's, half of a trace) in the baseline's copy.
 macro_rules! tile_trace {
-    ($(#[$doc:meta])* $name:ident, $msgs:ident, [$(#[$attr:meta])*]) => {
+    ($(#[$doc:meta])* $name:ident, $prep:ident, $msgs:ident, [$(#[$attr:meta])*]) => {
         impl MrfEngine {
             $(#[$doc])*
             $(#[$attr])*
@@ -385,7 +409,9 @@ macro_rules! tile_trace {
                         // own message. Then the likelihood of each, and the messages: each step in a
                         // loop of its own, which the processor overlaps across voxels (interleaved,
                         // each step of a voxel waited for the last).
-                        scratch.ray.clear();
+                        // (Into the buffer that holds no ray waiting for its messages.)
+                        let w = usize::from(scratch.rays[0].ready);
+                        scratch.rays[w].clear();
                         // (A walk fails only for a non-finite ray, which has no voxels.)
                         let Some(walk) = Walk::new(ray.origin, ray.dir, r) else { continue };
                         // (No allocated brick lies before `z_near`: the walk starts there. Bricks
@@ -413,15 +439,23 @@ macro_rules! tile_trace {
                                 let voxel = &mut scratch.voxels[i];
                                 voxel.seen = s;
                                 let cavity = (s - voxel.own * edges as f32) as f64;
-                                let buf = &mut scratch.ray;
+                                let buf = &mut scratch.rays[w & 1];
                                 buf.slots.push(i as u32);
                                 buf.z0.push(s_in * cz);
                                 buf.z1.push(s_out * cz);
                                 buf.cavity.push(cavity);
                             },
                         );
-                        self.$msgs(kf, &ray, &seg, &mut likelihood, weight, scratch);
+                        self.$prep(kf, &ray, &seg, &mut likelihood, weight, &mut scratch.rays[w]);
+                        // A ray's messages wait for the next ray's, so that the two are
+                        // computed side by side.
+                        if scratch.rays[1 - w].ready {
+                            self.$msgs(scratch, 1 - w, true);
+                        }
                     }
+                }
+                if let Some(w) = scratch.rays.iter().position(|r| r.ready) {
+                    self.$msgs(scratch, w, false);
                 }
                 // New entries, damped in log-odds: part of the old message stays (a tile's first
                 // message to a voxel goes in whole). A message whose change reverses direction from
@@ -479,32 +513,44 @@ macro_rules! tile_trace {
                 Traced { index: t, tile: new, changes, gone, rays: traced }
             }
 
-            /// The messages of one walked ray of a tile (its crossings in `scratch.ray`): its
-            /// likelihood, its factor's messages, and each added to the tile's voxel, weighted
-            /// by its length. Not inlined into the tile's trace, one very large function: with
-            /// it inlined a build of coffin3 at 0.02 m took 1.04x the time (on coffin-world on
+            /// The first part of one walked ray's messages (its crossings in `buf`): its
+            /// likelihood, and its cavities as odds. The ray is then `ready`, unless it has no
+            /// voxels. Not inlined into the tile's trace, one very large function: with it
+            /// inlined a build of coffin3 at 0.02 m took 1.04x the time (on coffin-world on
             /// two threads the two are within noise; BENCHMARKS.md, "MRF engine", session 33).
             $(#[$attr])*
             #[inline(never)]
-            fn $msgs<'a>(
-                &'a self,
+            fn $prep(
+                &self,
                 kf: &Keyframe,
                 ray: &PixelRay,
                 seg: &Segment,
                 likelihood: &mut RayLikelihood,
                 weight: f64,
-                scratch: &mut TileScratch<'a>,
+                buf: &mut RayScratch,
             ) {
                 let (r, cz) = (self.resolution(), ray.cz);
-                let inv_r = 1.0 / r;
-                let ray_buf = &mut scratch.ray;
-                if ray_buf.slots.is_empty() {
+                if buf.slots.is_empty() {
                     return;
                 }
-                likelihood.over_each(&ray_buf.z0, &ray_buf.z1, &mut ray_buf.nu);
                 // The chance the surface lies past the segment (outside the map where the
-                // bounds cut the ray short).
-                let beyond = seg.beyond(ray, &kf.noise, likelihood, r);
+                // bounds cut the ray short): the likelihood over one more stretch, computed
+                // with the voxels' as one more interval (as a call of its own it was 5% of a
+                // trace on icl-livingroom-5 at 0.02 m), then taken off.
+                let stretch = seg.beyond_stretch(ray, &kf.noise, r);
+                if let Some((z0, z1)) = stretch {
+                    buf.z0.push(z0);
+                    buf.z1.push(z1);
+                }
+                likelihood.over_each(&buf.z0, &buf.z1, &mut buf.nu);
+                buf.beyond = match stretch {
+                    Some(_) => {
+                        buf.z0.pop();
+                        buf.z1.pop();
+                        buf.nu.density.pop().unwrap_or(0.0)
+                    }
+                    None => 1.0,
+                };
                 // Voxels before the first one with any likelihood (the free stretch, about
                 // a quarter of a ray's voxels at 0.02 m) get the message 0 whatever anyone's
                 // belief: a surface there would make the reading impossible. Nor does their
@@ -512,28 +558,49 @@ macro_rules! tile_trace {
                 // `ray_log_messages` stays 0 through them). So they need no cavity and no
                 // place in the ray's factor; their message is 0 (clamped), unless the ray has
                 // no likelihood anywhere, beyond included, and says nothing (1/2).
-                let nu = &ray_buf.nu.density;
-                let first = nu.iter().position(|&nu| nu > 0.0).unwrap_or(nu.len());
-                let free = if first < nu.len() || beyond > 0.0 { logit(MSG_EPS) } else { 0.0 };
+                let nu = &buf.nu.density;
+                buf.first = nu.iter().position(|&nu| nu > 0.0).unwrap_or(nu.len());
+                buf.free = if buf.first < nu.len() || buf.beyond > 0.0 { logit(MSG_EPS) } else { 0.0 };
                 // (A voxel's length in voxel edges, weighted: its z-depths' difference.)
-                let per_z = weight * inv_r / cz;
-                for j in 0..first {
-                    let voxel = &mut scratch.voxels[ray_buf.slots[j] as usize];
-                    let length = per_z * (ray_buf.z1[j] - ray_buf.z0[j]);
-                    voxel.length += length;
-                    voxel.sum += length * free;
-                }
-                let odds = &mut ray_buf.cavity[first..];
+                buf.per_z = weight * (1.0 / r) / cz;
+                let odds = &mut buf.cavity[buf.first..];
                 for x in odds.iter_mut() {
                     *x = x.clamp(-MAX_LOG_ODDS, MAX_LOG_ODDS);
                 }
                 exp_in_place(odds);
-                ray_log_messages(odds, &nu[first..], beyond, -logit(MSG_EPS), &mut ray_buf.out);
-                for (j, m) in (first..).zip(&ray_buf.out) {
-                    let voxel = &mut scratch.voxels[ray_buf.slots[j] as usize];
-                    let length = per_z * (ray_buf.z1[j] - ray_buf.z0[j]);
-                    voxel.length += length;
-                    voxel.sum += length * m;
+                buf.ready = true;
+            }
+
+            /// The rest of the messages of the `ready` ray in buffer `w` and, with `both`, of
+            /// the other's too (the one walked after it): the ray factor's messages, each
+            /// added to the tile's voxel, weighted by its length, ray `w`'s first.
+            $(#[$attr])*
+            #[inline(never)]
+            fn $msgs(&self, scratch: &mut TileScratch, w: usize, both: bool) {
+                let bound = -logit(MSG_EPS);
+                let [a, b] = &mut scratch.rays;
+                let (this, next) = if w == 0 { (a, b) } else { (b, a) };
+                if both {
+                    ray_log_messages_pair(this.factor(), next.factor(), bound);
+                } else {
+                    let f = this.factor();
+                    ray_log_messages(f.odds, f.nu, f.nu_beyond, bound, f.out);
+                }
+                for buf in [this, next].into_iter().take(1 + usize::from(both)) {
+                    let (first, free, per_z) = (buf.first, buf.free, buf.per_z);
+                    for j in 0..first {
+                        let voxel = &mut scratch.voxels[buf.slots[j] as usize];
+                        let length = per_z * (buf.z1[j] - buf.z0[j]);
+                        voxel.length += length;
+                        voxel.sum += length * free;
+                    }
+                    for (j, m) in (first..).zip(&buf.out) {
+                        let voxel = &mut scratch.voxels[buf.slots[j] as usize];
+                        let length = per_z * (buf.z1[j] - buf.z0[j]);
+                        voxel.length += length;
+                        voxel.sum += length * m;
+                    }
+                    buf.ready = false;
                 }
             }
         }
@@ -543,6 +610,7 @@ macro_rules! tile_trace {
 tile_trace!(
     /// [`MrfEngine::trace_tile`] for any processor.
     trace_tile_baseline,
+    ray_prepare_baseline,
     ray_messages_baseline,
     []
 );
@@ -553,6 +621,7 @@ tile_trace!(
     /// same values (Rust never fuses a multiply and an add unasked, so FMA changes nothing);
     /// 0.93x the time of an MRF build (BENCHMARKS.md "MRF engine", session 25).
     trace_tile_avx2,
+    ray_prepare_avx2,
     ray_messages_avx2,
     [#[cfg(target_arch = "x86_64")] #[target_feature(enable = "avx2,fma")]]
 );

@@ -448,8 +448,8 @@ macro_rules! tile_trace {
                         );
                         self.$prep(kf, &ray, &seg, &mut likelihood, weight, &mut scratch.rays[w]);
                         // A ray's messages wait for the next ray's, so that the two are
-                        // computed side by side.
-                        if scratch.rays[1 - w].ready {
+                        // computed side by side (a ray that met no voxel leaves it waiting).
+                        if scratch.rays.iter().all(|r| r.ready) {
                             self.$msgs(scratch, 1 - w, true);
                         }
                     }

@@ -444,10 +444,14 @@ impl RayLikelihood<'_> {
         // (Plain loops: `extend` of a mapped iterator went through a `fold` that the AVX2 copy
         // of the trace did not inline, compiled for the baseline.)
         let m = z1.len();
+        // (The buffers only grow, and every value read is written first: zeroing them for each
+        // ray was a memset call per buffer, 1% of a trace.)
         for v in [&mut *w, &mut *sigma, &mut *x, &mut *tail] {
-            v.clear();
-            v.resize(m, 0.0);
+            if v.len() < m {
+                v.resize(m, 0.0);
+            }
         }
+        let (w, sigma, x, tail) = (&mut w[..m], &mut sigma[..m], &mut x[..m], &mut tail[..m]);
         for (((&z, w), sigma), x) in z1.iter().zip(w.iter_mut()).zip(sigma.iter_mut()).zip(x.iter_mut()) {
             *w = z + bias.eval(z);
             *sigma = std.eval(z).max(STD_FLOOR) * scale;
@@ -480,8 +484,11 @@ impl RayLikelihood<'_> {
             let mut a = near;
             density[0] = self.density(&mut a, &mut far(0));
         }
-        marks.clear();
-        marks.resize(m, 0);
+        if marks.len() < m {
+            marks.resize(m, 0);
+        }
+        let marks = &mut marks[..m];
+        marks[0] = 0;
         let (gaps, tiny) = (z0[1..].iter().zip(&z1[..m - 1]), w.iter().zip(&w[1..]).zip(sigma.iter().zip(&sigma[1..])));
         for (mark, ((z0, z1), ((wa, wb), (sa, sb)))) in marks[1..].iter_mut().zip(gaps.zip(tiny)) {
             *mark = u8::from(z0 != z1) | u8::from(wb - wa <= 1e-3 * sa.min(*sb));

@@ -77,20 +77,9 @@ pub const MAX_LOG_ODDS: f64 = 20.723_265_836_146_06; // ln((1 - MU_EPS) / MU_EPS
 /// vectorised pass at the end.
 #[inline(always)] // (so that the AVX2 copy of a tile trace has it in four lanes)
 pub fn ray_log_messages(odds: &[f64], nu: &[f64], nu_beyond: f64, bound: f64, out: &mut Vec<f64>) {
-    debug_assert_eq!(odds.len(), nu.len());
-    out.clear();
-    out.resize(odds.len(), 0.0);
-    // Backward pass: T_i stored in `out` temporarily.
-    let mut t = nu_beyond;
-    for v in odds.iter().zip(nu).zip(out.iter_mut()).rev() {
-        t = suffix_step(v, t);
-    }
-    // Forward pass with the rescaled prefix a_i = A_i / V_i.
-    let mut a = 0.0f64;
-    for v in odds.iter().zip(nu).zip(out.iter_mut()) {
-        a = prefix_step(v, a);
-    }
-    ln_clamped_in_place(out, bound);
+    // (The pair's passes with a second ray of no voxels, which costs nothing.)
+    let none = RayFactor { odds: &[], nu: &[], nu_beyond: 0.0, out: &mut Vec::new() };
+    ray_log_messages_pair(RayFactor { odds, nu, nu_beyond, out }, none, bound);
 }
 
 /// One ray's factor for [`ray_log_messages_pair`]: [`ray_log_messages`]'s arguments.
@@ -115,8 +104,8 @@ pub(crate) fn ray_log_messages_pair(a: RayFactor, b: RayFactor, bound: f64) {
         out.clear();
         out.resize(f.len(), 0.0);
     }
-    // Backward, from each ray's end: side by side over the last `m` voxels of each, then the
-    // rest of the longer alone.
+    // Backward (`T_i` stored in `out` for the forward pass), from each ray's end: side by side
+    // over the last `m` voxels of each, then the rest of the longer alone.
     let (mut ta, mut tb) = (a.nu_beyond, b.nu_beyond);
     let mut ia = a.odds.iter().zip(a.nu).zip(a_out.iter_mut()).rev();
     let mut ib = b.odds.iter().zip(b.nu).zip(b_out.iter_mut()).rev();
@@ -126,7 +115,7 @@ pub(crate) fn ray_log_messages_pair(a: RayFactor, b: RayFactor, bound: f64) {
     }
     ia.for_each(|v| ta = suffix_step(v, ta));
     ib.for_each(|v| tb = suffix_step(v, tb));
-    // Forward, from each ray's start.
+    // Forward with the rescaled prefix a_i = A_i / V_i, from each ray's start.
     let (mut pa, mut pb) = (0.0f64, 0.0f64);
     let mut ia = a.odds.iter().zip(a.nu).zip(a_out.iter_mut());
     let mut ib = b.odds.iter().zip(b.nu).zip(b_out.iter_mut());

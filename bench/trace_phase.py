@@ -38,15 +38,16 @@ fn flush() {
 }
 """
 
-COLLECT = """        let pending: Vec<Traced> = tiles
-            .par_iter()
-            .map_init(TileScratch::default, |scratch, &t| self.trace_tile(kf, &rays, t, scratch))
-            .collect();"""
+# The parallel traces of one keyframe update, however formatted, with the per-thread buffers'
+# type (`TileScratch` until session 37, `Scratch` since); and the timed version of it.
+COLLECT = re.compile(r"let pending: Vec<Traced> =\s*tiles\s*\.par_iter\(\)\s*"
+                     r"\.map_init\((\w+)::default, \|scratch, &t\| self\.trace_tile\(kf, &rays, t, scratch\)\)\s*"
+                     r"\.collect\(\);")
 
-TIMED_COLLECT = """        let t0 = std::time::Instant::now();
+TIMED_COLLECT = """let t0 = std::time::Instant::now();
         let pending: Vec<Traced> = tiles
             .par_iter()
-            .map_init(TileScratch::default, |scratch, &t| { let r = self.trace_tile(kf, &rays, t, scratch); flush(); r })
+            .map_init(SCRATCH::default, |scratch, &t| { let r = self.trace_tile(kf, &rays, t, scratch); flush(); r })
             .collect();
         {
             use std::sync::atomic::Ordering::Relaxed;
@@ -56,7 +57,10 @@ TIMED_COLLECT = """        let t0 = std::time::Instant::now();
 
 # Where each generation of the trace handles one crossing, and the counting line to add.
 CROSSING_SITES = [
-    # Sessions 19 and later: slivers are skipped before anything else.
+    # Session 37 and later: the visit one level deeper (a ray's walk in a loop).
+    ("                                    if edges < SLIVER {\n                                        return;\n                                    }",
+     "\n                                    count(false);"),
+    # Sessions 19 to 36: slivers are skipped before anything else.
     ("                                if edges < SLIVER {\n                                    return;\n                                }",
      "\n                                count(false);"),
     # Before session 19 (dfa1c32): every crossing of an allocated voxel, slivers included.
@@ -77,10 +81,12 @@ def build(repo, rev):
     path = f"{tree}/crates/mrfmap/src/inference/mrf/trace.rs"
     src = open(path).read()
     if "TRACE_NS" not in src:
-        for need in ("use rayon::prelude::*;", COLLECT):
-            if need not in src:
-                sys.exit(f"{rev}: trace.rs has no line\n{need}")
-        src = src.replace("use rayon::prelude::*;", COUNTERS, 1).replace(COLLECT, TIMED_COLLECT)
+        collect = COLLECT.search(src)
+        if "use rayon::prelude::*;" not in src or collect is None:
+            sys.exit(f"{rev}: trace.rs has no `use rayon::prelude::*;` or no traces like\n{COLLECT.pattern}")
+        timed = TIMED_COLLECT.replace("SCRATCH", collect.group(1))
+        src = src[:collect.start()] + timed + src[collect.end():]
+        src = src.replace("use rayon::prelude::*;", COUNTERS, 1)
         site = next((s for s in CROSSING_SITES if s[0] in src), None)
         if site is None:
             sys.exit(f"{rev}: trace.rs has none of the known crossing sites")

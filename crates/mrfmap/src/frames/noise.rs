@@ -12,6 +12,7 @@ use serde::Deserialize;
 use crate::error::{Error, Result, parse_toml, read_text};
 use crate::frames::{Camera, DepthImage};
 use crate::random::Rng;
+use crate::vecmath::VECTOR_LANES;
 
 /// Standard deviations are clamped below at this value (metres), so a fitted polynomial that
 /// dips to zero or below never yields a degenerate Gaussian.
@@ -362,9 +363,12 @@ pub struct RayLikelihood<'a> {
 pub struct Intervals {
     /// Per interval, its likelihood density.
     pub density: Vec<f64>,
-    /// The far boundary of each interval from the first that may be nonzero on, field by
-    /// field ([`Boundary`]'s), so that each step is a loop the compiler vectorises. An
-    /// interval's near boundary is the last one's far one, but where they leave a gap.
+    /// The intervals' far ends from the first that may be nonzero on, padded to whole vectors.
+    z: Vec<f64>,
+    /// The boundaries of the intervals from the first that may be nonzero on, field by field
+    /// ([`Boundary`]'s), so that each step is a loop the compiler vectorises: the first one's
+    /// near boundary, then each one's far one. An interval's near boundary is the last one's
+    /// far one, but where they leave a gap.
     w: Vec<f64>,
     sigma: Vec<f64>,
     x: Vec<f64>,
@@ -424,7 +428,7 @@ impl RayLikelihood<'_> {
     /// starting where the last ended or later) into `out.density` (cleared first): the same
     /// values, bit for bit, in a fraction of the instructions. The intervals more than
     /// [`TAIL_CUTOFF`] std in front of the reading are skipped whole; for the rest each step
-    /// (the far boundaries' fields, their tails, the densities) is a loop of its own over the
+    /// (the boundaries' fields, their tails, the densities) is a loop of its own over the
     /// intervals, on one vector per field, and the rare cases (gaps between intervals,
     /// intervals too short for the tails) are patched afterwards.
     #[inline(always)] // (so that the AVX2 copy of a tile trace has it in four lanes)
@@ -438,41 +442,47 @@ impl RayLikelihood<'_> {
             return;
         }
         let (z0, z1) = (&z0[start..], &z1[start..]);
-        // Each interval's far boundary ([`RayLikelihood::boundary`], field by field).
-        let Intervals { density, w, sigma, x, tail, marks } = out;
+        let Intervals { density, z, w, sigma, x, tail, marks } = out;
         let (bias, std, scale, measured) = (self.bias, self.std, self.scale, self.measured);
-        // (Plain loops: `extend` of a mapped iterator went through a `fold` that the AVX2 copy
-        // of the trace did not inline, compiled for the baseline.)
+        // Every loop runs over whole vectors: `m4` intervals, those past `m` copies of the
+        // last, computed and never read. (A ray crosses a dozen voxels with any likelihood on
+        // icl-livingroom-5 at 0.02 m: the scalar remainders of the loops in four lanes were
+        // a large part of its likelihood.)
         let m = z1.len();
+        let m4 = m.next_multiple_of(VECTOR_LANES);
         // (The buffers only grow, and every value read is written first: zeroing them for each
         // ray was a memset call per buffer, 1% of a trace.)
-        for v in [&mut *w, &mut *sigma, &mut *x, &mut *tail] {
-            if v.len() < m {
-                v.resize(m, 0.0);
+        for v in [&mut *z, &mut *w, &mut *sigma, &mut *x, &mut *tail] {
+            if v.len() <= m4 {
+                v.resize(m4 + 1, 0.0);
             }
         }
-        let (w, sigma, x, tail) = (&mut w[..m], &mut sigma[..m], &mut x[..m], &mut tail[..m]);
-        for (((&z, w), sigma), x) in z1.iter().zip(w.iter_mut()).zip(sigma.iter_mut()).zip(x.iter_mut()) {
+        z[..m].copy_from_slice(z1);
+        z[m..m4].fill(z1[m - 1]);
+        density.resize(start + m4, 0.0);
+        // Each interval's boundaries ([`RayLikelihood::boundary`], field by field): the first
+        // one's near boundary at 0, then every interval's far one, so that interval `j` lies
+        // between boundaries `j` and `j + 1`. (Plain loops: `extend` of a mapped iterator went
+        // through a `fold` that the AVX2 copy of the trace did not inline.)
+        let near = self.boundary(z0[0]);
+        (w[0], sigma[0], x[0]) = (near.w, near.sigma, near.x);
+        let fields = w[1..=m4].iter_mut().zip(sigma[1..=m4].iter_mut()).zip(x[1..=m4].iter_mut());
+        for (&z, ((w, sigma), x)) in z[..m4].iter().zip(fields) {
             *w = z + bias.eval(z);
             *sigma = std.eval(z).max(STD_FLOOR) * scale;
             *x = (*w - measured) / *sigma;
         }
-        for (tail, &x) in tail.iter_mut().zip(x.iter()) {
+        tail[0] = upper_tail(x[0].abs());
+        for (tail, &x) in tail[1..=m4].iter_mut().zip(&x[1..=m4]) {
             *tail = upper_tail(x.abs());
         }
-        let far = |j: usize| Boundary { w: w[j], sigma: sigma[j], x: x[j], tail: tail[j] };
+        let bound = |j: usize| Boundary { w: w[j], sigma: sigma[j], x: x[j], tail: tail[j] };
         // Each interval from the last one's far boundary to its own, the first from its own near
         // one; then the gaps and the intervals too short for the tails again, from their own near
         // boundaries, as `over` takes them.
         let density = &mut density[start..];
-        let with_tail = |mut b: Boundary| {
-            b.tail = upper_tail(b.x.abs());
-            b
-        };
-        let near = with_tail(self.boundary(z0[0]));
-        density[0] = mass_density(&near, &far(0));
         let pairs = (w.iter().zip(&w[1..]), x.iter().zip(&x[1..]), tail.iter().zip(&tail[1..]));
-        for (d, ((w, x), tail)) in density[1..].iter_mut().zip(pairs.0.zip(pairs.1).zip(pairs.2)) {
+        for (d, ((w, x), tail)) in density.iter_mut().zip(pairs.0.zip(pairs.1).zip(pairs.2)) {
             let a = Boundary { w: *w.0, sigma: 0.0, x: *x.0, tail: *tail.0 };
             let b = Boundary { w: *w.1, sigma: 0.0, x: *x.1, tail: *tail.1 };
             *d = mass_density(&a, &b);
@@ -480,29 +490,29 @@ impl RayLikelihood<'_> {
         // (Where an interval is neither, `density` gives what the loop gave, far off or not. The
         // intervals to patch are marked in a loop of their own and found eight marks at a time:
         // a branch per interval cost more than the densities' loop.)
-        if w[0] - near.w <= 1e-3 * near.sigma.min(sigma[0]) {
-            let mut a = near;
-            density[0] = self.density(&mut a, &mut far(0));
-        }
         if marks.len() < m {
             marks.resize(m, 0);
         }
         let marks = &mut marks[..m];
-        marks[0] = 0;
-        let (gaps, tiny) = (z0[1..].iter().zip(&z1[..m - 1]), w.iter().zip(&w[1..]).zip(sigma.iter().zip(&sigma[1..])));
-        for (mark, ((z0, z1), ((wa, wb), (sa, sb)))) in marks[1..].iter_mut().zip(gaps.zip(tiny)) {
-            *mark = u8::from(z0 != z1) | u8::from(wb - wa <= 1e-3 * sa.min(*sb));
+        let tiny = |(wa, wb): (&f64, &f64), (sa, sb): (&f64, &f64)| u8::from(wb - wa <= 1e-3 * sa.min(*sb));
+        marks[0] = tiny((&w[0], &w[1]), (&sigma[0], &sigma[1]));
+        let (gaps, fields) =
+            (z0[1..].iter().zip(&z1[..m - 1]), w[1..].iter().zip(&w[2..]).zip(sigma[1..].iter().zip(&sigma[2..])));
+        for (mark, ((z0, z1), (w, sigma))) in marks[1..].iter_mut().zip(gaps.zip(fields)) {
+            *mark = u8::from(z0 != z1) | tiny(w, sigma);
         }
         for (c, word) in marks.chunks(8).enumerate() {
             if word.iter().all(|&m| m == 0) {
                 continue;
             }
             for j in (8 * c..).zip(word).filter(|(_, m)| **m != 0).map(|(j, _)| j) {
-                let mut a = if z0[j] != z1[j - 1] { with_tail(self.boundary(z0[j])) } else { far(j - 1) };
-                density[j] = self.density(&mut a, &mut far(j));
+                let gap = j > 0 && z0[j] != z1[j - 1];
+                let mut a = if gap { self.boundary(z0[j]) } else { bound(j) };
+                density[j] = self.density(&mut a, &mut bound(j + 1));
             }
         }
-        self.last = Some((z1[m - 1], far(m - 1)));
+        self.last = Some((z1[m - 1], bound(m)));
+        out.density.truncate(n);
     }
 
     /// The density between boundaries `a` and `b` (see [`RayLikelihood::over`]).

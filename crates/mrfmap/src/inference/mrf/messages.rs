@@ -26,7 +26,7 @@
 //! form on top of it (the brute-force tests below check both).
 
 use crate::inference::sigmoid;
-use crate::vecmath::ln_clamped_in_place;
+use crate::vecmath::{VECTOR_LANES, ln_clamped_in_place};
 
 /// Incoming messages are kept in `[MU_EPS, 1 - MU_EPS]`.
 pub const MU_EPS: f64 = 1e-9;
@@ -100,9 +100,11 @@ pub(crate) fn ray_log_messages_pair(a: RayFactor, b: RayFactor, bound: f64) {
         debug_assert_eq!(f.odds.len(), f.nu.len());
     }
     let (a_out, b_out) = (a.out, b.out);
+    // (The logarithms at the end run over whole vectors, [`VECTOR_LANES`]: the padding is
+    // cut off after.)
     for (f, out) in [(a.odds, &mut *a_out), (b.odds, &mut *b_out)] {
         out.clear();
-        out.resize(f.len(), 0.0);
+        out.resize(f.len().next_multiple_of(VECTOR_LANES), 0.0);
     }
     // Backward (`T_i` stored in `out` for the forward pass), from each ray's end: side by side
     // over the last `m` voxels of each, then the rest of the longer alone.
@@ -127,6 +129,8 @@ pub(crate) fn ray_log_messages_pair(a: RayFactor, b: RayFactor, bound: f64) {
     ib.for_each(|v| pb = prefix_step(v, pb));
     ln_clamped_in_place(a_out, bound);
     ln_clamped_in_place(b_out, bound);
+    a_out.truncate(a.odds.len());
+    b_out.truncate(b.odds.len());
 }
 
 /// One voxel of the backward pass: stores `T_i` (`t`) in `out` and returns `T_{i-1}`.

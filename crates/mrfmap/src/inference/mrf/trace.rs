@@ -14,8 +14,8 @@ use crate::frames::{Intervals, RayLikelihood};
 use crate::inference::Engine;
 use crate::inference::{logit, sigmoid};
 use crate::map::{BRICK_VOXELS, Brick, BrickKey, Grid, SlotMask, VoxelKey, mask_set, mask_slots};
-use crate::rays::{FrameRays, PixelRay, Segment, Walk};
-use crate::vecmath::exp;
+use crate::rays::{CameraRays, FrameRays, PixelRay, Segment, Walk};
+use crate::vecmath::{VECTOR_LANES, exp};
 
 /// One tile's trace, before it is applied.
 struct Traced {
@@ -44,14 +44,12 @@ const MAX_STRIDE: u32 = 8;
 struct VoxelAcc {
     /// The tile's old message per voxel edge of length (a ray's own share per edge of it).
     own: f32,
-    /// `S` as traced.
-    seen: f32,
     /// Summed lengths (voxel edges) and length-weighted log-odds messages of this trace.
     length: f64,
     sum: f64,
 }
 
-/// Per-tile buffers, reused across the tiles a thread traces.
+/// Per-tile buffers of the tile's voxels, reused across the tiles a thread traces.
 struct TileScratch<'a> {
     voxels: Vec<VoxelAcc>,
     /// Per voxel of `voxels`, what only the tile's end reads: its key and the tile's old entry,
@@ -68,9 +66,29 @@ struct TileScratch<'a> {
     /// The first `used` are in use (the rest are kept for reuse).
     tables: Vec<SlotTable<'a>>,
     used: usize,
-    /// Two rays' buffers: a ray whose messages wait for the next one's ([`RayScratch::ready`]),
-    /// and the ray being walked.
+}
+
+/// A thread's buffers for tracing tiles: the tile's voxels, and two rays' buffers apart from
+/// them (so that a walk can write a ray's while it looks up the tile's).
+struct Scratch<'a> {
+    tile: TileScratch<'a>,
+    /// A ray whose messages wait for the next one's ([`RayScratch::ready`]), and the ray
+    /// being walked.
     rays: [RayScratch; 2],
+    /// The most crossings a ray's buffers are first made room for ([`MAX_ROOM`]; a test sets
+    /// it small, so that walks are walked again).
+    max_room: usize,
+}
+
+/// [`Scratch::max_room`]. A ray's bound on its crossings grows with its range over the
+/// resolution; past this many its walk counts them first (and is walked again), so that no
+/// bound makes room for more than the ray crosses.
+const MAX_ROOM: usize = 1 << 16;
+
+impl Default for Scratch<'_> {
+    fn default() -> Self {
+        Scratch { tile: TileScratch::default(), rays: Default::default(), max_room: MAX_ROOM }
+    }
 }
 
 /// [`TileScratch::bricks`] value of a brick that is not allocated.
@@ -111,7 +129,6 @@ impl Default for TileScratch<'_> {
             recent: Box::new([(NO_BRICK, 0); RECENT]),
             tables: Vec::new(),
             used: 0,
-            rays: Default::default(),
         }
     }
 }
@@ -129,7 +146,6 @@ impl<'a> TileScratch<'a> {
         self.recent.fill((NO_BRICK, 0));
         self.voxels.clear();
         self.keys.clear();
-        self.rays.iter_mut().for_each(RayScratch::clear);
     }
 
     /// The table of brick `key` with its sums in `grid`, `None` if the brick is not allocated
@@ -209,7 +225,7 @@ impl<'a> TileScratch<'a> {
         let i = self.voxels.len();
         table.index[slot] = i as u32;
         mask_set(&mut table.set, slot);
-        self.voxels.push(VoxelAcc { own, seen: 0.0, length: 0.0, sum: 0.0 });
+        self.voxels.push(VoxelAcc { own, length: 0.0, sum: 0.0 });
         self.keys.push((key, old));
         i
     }
@@ -223,17 +239,23 @@ impl<'a> TileScratch<'a> {
         }
     }
 
-    /// The voxels' indices by brick, then slot.
-    fn sorted(&self) -> impl Iterator<Item = usize> + '_ {
+    /// The voxels' indices by brick, then slot, each with its `S` as traced (0 in a brick
+    /// no longer in the map, whose voxels no ray reached).
+    fn sorted(&self) -> impl Iterator<Item = (usize, f32)> + '_ {
         let mut order: Vec<&SlotTable> = self.tables[..self.used].iter().collect();
         order.sort_unstable_by_key(|t| t.key);
-        order.into_iter().flat_map(|t| mask_slots(&t.set).map(|slot| t.index[slot] as usize))
+        order.into_iter().flat_map(|t| {
+            mask_slots(&t.set).map(|slot| (t.index[slot] as usize, t.sums.map_or(0.0, |sums| sums[slot])))
+        })
     }
 }
 
 /// Per-ray buffers: one entry per voxel the ray crosses, in order.
 #[derive(Default)]
 struct RayScratch {
+    /// Voxels crossed: the first `n` values of the four buffers below, which only grow
+    /// ([`RayScratch::room`]).
+    n: usize,
     /// The voxel's index in [`TileScratch::voxels`].
     slots: Vec<u32>,
     /// Where the ray enters and leaves the voxel (camera z-depth, m). (Its length inside is
@@ -256,19 +278,27 @@ struct RayScratch {
 
 impl RayScratch {
     fn clear(&mut self) {
-        for v in [&mut self.z0, &mut self.z1, &mut self.cavity] {
-            v.clear();
-        }
-        self.slots.clear();
+        self.n = 0;
         self.ready = false;
+    }
+
+    /// Makes the buffers at least `len` long (doubling).
+    fn room(&mut self, len: usize) {
+        if self.slots.len() < len {
+            let len = len.max(2 * self.slots.len());
+            self.slots.resize(len, 0);
+            for v in [&mut self.z0, &mut self.z1, &mut self.cavity] {
+                v.resize(len, 0.0);
+            }
+        }
     }
 
     /// The ray's factor from the first voxel with any likelihood on (of a `ready` ray).
     #[inline(always)]
     fn factor(&mut self) -> RayFactor<'_> {
-        let first = self.first;
+        let (first, n) = (self.first, self.n);
         RayFactor {
-            odds: &self.cavity[first..],
+            odds: &self.cavity[first..n],
             nu: &self.nu.density[first..],
             nu_beyond: self.beyond,
             out: &mut self.out,
@@ -315,11 +345,11 @@ impl MrfEngine {
         // whatever the number of threads. (Held at once: a keyframe's new tiles with a change
         // per entry, 14 bytes per entry on top of what its tiles already hold.)
         let kf = &self.keyframes[i];
-        let rays = FrameRays::new(&kf.frame);
-        let pending: Vec<Traced> = tiles
-            .par_iter()
-            .map_init(TileScratch::default, |scratch, &t| self.trace_tile(kf, &rays, t, scratch))
-            .collect();
+        // (The camera's rays per column and row: a ray then takes no division of `pixel_ray`.)
+        let mut camera = CameraRays::default();
+        let rays = FrameRays::with_camera_rays(&kf.frame, &mut camera);
+        let pending: Vec<Traced> =
+            tiles.par_iter().map_init(Scratch::default, |scratch, &t| self.trace_tile(kf, &rays, t, scratch)).collect();
         self.epoch += 1;
         for mut tr in pending {
             report.rays += tr.rays;
@@ -339,13 +369,7 @@ impl MrfEngine {
     /// entries (damped against its old ones) and the changes they make to the sums. On a
     /// processor with AVX2 the trace runs in its copy compiled for it
     /// ([`MrfEngine::trace_tile_avx2`]).
-    fn trace_tile<'a>(
-        &'a self,
-        kf: &Keyframe,
-        rays: &FrameRays<'_>,
-        t: usize,
-        scratch: &mut TileScratch<'a>,
-    ) -> Traced {
+    fn trace_tile<'a>(&'a self, kf: &Keyframe, rays: &FrameRays<'_>, t: usize, scratch: &mut Scratch<'a>) -> Traced {
         #[cfg(target_arch = "x86_64")]
         if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
             // SAFETY: the processor has AVX2 and FMA, checked just above.
@@ -371,13 +395,15 @@ macro_rules! tile_trace {
                 kf: &Keyframe,
                 rays: &FrameRays<'_>,
                 t: usize,
-                scratch: &mut TileScratch<'a>,
+                all: &mut Scratch<'a>,
             ) -> Traced {
                 let tile = &kf.tiles[t];
                 let r = self.resolution();
                 let inv_r = 1.0 / r;
                 // The tile's voxels: old ones first (their message per metre is the rays' own share).
+                let (scratch, bufs, max_room) = (&mut all.tile, &mut all.rays, all.max_room);
                 scratch.clear();
+                bufs.iter_mut().for_each(RayScratch::clear);
                 for (n, &(brick, _)) in tile.runs.iter().enumerate() {
                     let t = scratch.table_or_new(brick, &self.sums);
                     for e in tile.run(n) {
@@ -420,52 +446,72 @@ macro_rules! tile_trace {
                         // loop of its own, which the processor overlaps across voxels (interleaved,
                         // each step of a voxel waited for the last).
                         // (Into the buffer that holds no ray waiting for its messages.)
-                        let w = usize::from(scratch.rays[0].ready);
-                        scratch.rays[w].clear();
+                        let w = usize::from(bufs[0].ready);
                         // (A walk fails only for a non-finite ray, which has no voxels.)
                         let Some(walk) = Walk::new(ray.origin, ray.dir, r) else { continue };
                         // (No allocated brick lies before `z_near`: the walk starts there. Bricks
                         // that are not allocated are skipped, as the reference does.)
-                        walk.crossings_in_bricks(
-                            seg.start.max(z_near / cz),
-                            seg.end,
-                            scratch,
-                            |scratch, key, s| {
-                                let (table, sums) = scratch.table_of(key, &self.sums)?;
-                                let sums = sums?; // (a table kept for old entries in a freed brick)
-                                z_first = z_first.min(s * cz);
-                                Some((table, sums))
-                            },
-                            |scratch, (table, sums), slot, s_in, s_out| {
-                                // A crossing shorter than 1e-9 voxel edges (a ray within rounding
-                                // of a voxel's edge, or where a walk starts again at a brick face)
-                                // carries no length: it is skipped.
-                                let edges = (s_out - s_in) * inv_r;
-                                if edges < SLIVER {
-                                    return;
-                                }
-                                let s = sums[slot];
-                                let i = scratch.voxel_at(table, slot);
-                                let voxel = &mut scratch.voxels[i];
-                                voxel.seen = s;
-                                let cavity = (s - voxel.own * edges as f32) as f64;
-                                let buf = &mut scratch.rays[w & 1];
-                                buf.slots.push(i as u32);
-                                buf.z0.push(s_in * cz);
-                                buf.z1.push(s_out * cz);
-                                buf.cavity.push(cavity);
-                            },
-                        );
-                        self.$prep(kf, &ray, &seg, &mut likelihood, weight, &mut scratch.rays[w]);
+                        let (s_start, s_end) = (seg.start.max(z_near / cz), seg.end);
+                        // The crossings go into buffers long enough for all of them (one per
+                        // voxel face the segment passes, and some for rounding), apart from
+                        // `scratch`: one bound check per crossing, where a push to each of four
+                        // buffers inside `scratch` loaded and stored its length and capacity
+                        // (0.89x the time of an ICL build, session 37). A walk that finds more
+                        // crossings is walked again with room for them (the same crossings).
+                        let buf = &mut bufs[w];
+                        let faces = (s_end - s_start).max(0.0) * inv_r * ray.dir.iter().map(|d| d.abs()).sum::<f64>();
+                        let mut room = (faces as usize).min(max_room) + 8;
+                        buf.n = loop {
+                            buf.room(room);
+                            let (slots, z0, z1, cavities) =
+                                (&mut buf.slots[..room], &mut buf.z0[..room], &mut buf.z1[..room], &mut buf.cavity[..room]);
+                            let mut n = 0;
+                            walk.crossings_in_bricks(
+                                s_start,
+                                s_end,
+                                scratch,
+                                |scratch, key, s| {
+                                    let (table, sums) = scratch.table_of(key, &self.sums)?;
+                                    let sums = sums?; // (a table kept for old entries in a freed brick)
+                                    z_first = z_first.min(s * cz);
+                                    Some((table, sums))
+                                },
+                                |scratch, (table, sums), slot, s_in, s_out| {
+                                    // A crossing shorter than 1e-9 voxel edges (a ray within rounding
+                                    // of a voxel's edge, or where a walk starts again at a brick face)
+                                    // carries no length: it is skipped.
+                                    let edges = (s_out - s_in) * inv_r;
+                                    if edges < SLIVER {
+                                        return;
+                                    }
+                                    let s = sums[slot];
+                                    let i = scratch.voxel_at(table, slot);
+                                    let cavity = (s - scratch.voxels[i].own * edges as f32) as f64;
+                                    if n < room {
+                                        slots[n] = i as u32;
+                                        z0[n] = s_in * cz;
+                                        z1[n] = s_out * cz;
+                                        cavities[n] = cavity;
+                                    }
+                                    n += 1;
+                                },
+                            );
+                            if n <= room {
+                                break n;
+                            }
+                            room = n;
+                        };
+                        buf.ready = false;
+                        self.$prep(kf, &ray, &seg, &mut likelihood, weight, buf);
                         // A ray's messages wait for the next ray's, so that the two are
                         // computed side by side (a ray that met no voxel leaves it waiting).
-                        if scratch.rays.iter().all(|r| r.ready) {
-                            self.$msgs(scratch, 1 - w, true);
+                        if bufs.iter().all(|r| r.ready) {
+                            self.$msgs(&mut scratch.voxels, bufs, 1 - w, true);
                         }
                     }
                 }
-                if let Some(w) = scratch.rays.iter().position(|r| r.ready) {
-                    self.$msgs(scratch, w, false);
+                if let Some(w) = bufs.iter().position(|r| r.ready) {
+                    self.$msgs(&mut scratch.voxels, bufs, w, false);
                 }
                 // New entries, damped in log-odds: part of the old message stays (a tile's first
                 // message to a voxel goes in whole). A message whose change reverses direction from
@@ -483,13 +529,13 @@ macro_rules! tile_trace {
                 new.entries.reserve_exact(scratch.voxels.len());
                 let mut changes = Vec::with_capacity(scratch.voxels.len());
                 let mut gone = Vec::new();
-                for i in scratch.sorted() {
+                for (i, seen) in scratch.sorted() {
                     let (voxel, (key, old_entry)) = (&scratch.voxels[i], scratch.keys[i]);
                     let old = old_entry.map_or(0.0, |e| e.message());
                     if voxel.length > 0.0 {
                         let mut entry = Entry::new(key.slot());
                         entry.set_edges(voxel.length);
-                        entry.set_seen(voxel.seen);
+                        entry.set_seen(seen);
                         match old_entry {
                             Some(e) => {
                                 let change = voxel.sum - e.message() as f64;
@@ -505,7 +551,7 @@ macro_rules! tile_trace {
                                 entry.set_damping(level, calm, step);
                                 if step != change {
                                     // The voxel's `S` after this update, and where the whole step would take it.
-                                    let after = voxel.seen as f64 + step;
+                                    let after = seen as f64 + step;
                                     let rest = (sigmoid(after + change - step) - sigmoid(after)).abs();
                                     new.held_back = new.held_back.max(rest as f32);
                                 }
@@ -539,8 +585,8 @@ macro_rules! tile_trace {
                 weight: f64,
                 buf: &mut RayScratch,
             ) {
-                let (r, cz) = (self.resolution(), ray.cz);
-                if buf.slots.is_empty() {
+                let (r, cz, n) = (self.resolution(), ray.cz, buf.n);
+                if n == 0 {
                     return;
                 }
                 // The chance the surface lies past the segment (outside the map where the
@@ -549,20 +595,18 @@ macro_rules! tile_trace {
                 // trace on icl-livingroom-5 at 0.02 m), then taken off.
                 let stretch = seg.beyond_stretch(ray, &kf.noise, r);
                 if let Some((z0, z1)) = stretch {
-                    buf.z0.push(z0);
-                    buf.z1.push(z1);
+                    buf.room(n + 1);
+                    (buf.z0[n], buf.z1[n]) = (z0, z1);
                 }
-                likelihood.over_each(&buf.z0, &buf.z1, &mut buf.nu);
+                let intervals = n + usize::from(stretch.is_some());
+                likelihood.over_each(&buf.z0[..intervals], &buf.z1[..intervals], &mut buf.nu);
                 buf.beyond = match stretch {
-                    Some(_) => {
-                        buf.z0.pop();
-                        buf.z1.pop();
-                        buf.nu.density.pop().unwrap_or(0.0)
-                    }
+                    Some(_) => buf.nu.density.pop().unwrap_or(0.0),
                     None => 1.0,
                 };
-                // Voxels before the first one with any likelihood (the free stretch, about
-                // a quarter of a ray's voxels at 0.02 m) get the message 0 whatever anyone's
+                // Voxels before the first one with any likelihood (the free stretch: at 0.02 m a
+                // quarter of a ray's voxels on coffin-world, 46% on icl-livingroom-5, counted in
+                // session 37) get the message 0 whatever anyone's
                 // belief: a surface there would make the reading impossible. Nor does their
                 // belief reach the other voxels' messages (the prefix of
                 // `ray_log_messages` stays 0 through them). So they need no cavity and no
@@ -573,7 +617,10 @@ macro_rules! tile_trace {
                 buf.free = if buf.first < nu.len() || buf.beyond > 0.0 { logit(MSG_EPS) } else { 0.0 };
                 // (A voxel's length in voxel edges, weighted: its z-depths' difference.)
                 buf.per_z = weight * (1.0 / r) / cz;
-                for x in &mut buf.cavity[buf.first..] {
+                // (Over whole vectors, [`VECTOR_LANES`]: the padding's values are never read.)
+                let padded = buf.first + (n - buf.first).next_multiple_of(VECTOR_LANES);
+                buf.room(padded);
+                for x in &mut buf.cavity[buf.first..padded] {
                     *x = exp(x.clamp(-MAX_LOG_ODDS, MAX_LOG_ODDS));
                 }
                 buf.ready = true;
@@ -584,9 +631,9 @@ macro_rules! tile_trace {
             /// added to the tile's voxel, weighted by its length, ray `w`'s first.
             $(#[$attr])*
             #[inline(never)]
-            fn $msgs(&self, scratch: &mut TileScratch, w: usize, both: bool) {
+            fn $msgs(&self, voxels: &mut [VoxelAcc], bufs: &mut [RayScratch; 2], w: usize, both: bool) {
                 let bound = -logit(MSG_EPS);
-                let [a, b] = &mut scratch.rays;
+                let [a, b] = bufs;
                 let (this, next) = if w == 0 { (a, b) } else { (b, a) };
                 if both {
                     ray_log_messages_pair(this.factor(), next.factor(), bound);
@@ -597,13 +644,13 @@ macro_rules! tile_trace {
                 for buf in [this, next].into_iter().take(1 + usize::from(both)) {
                     let (first, free, per_z) = (buf.first, buf.free, buf.per_z);
                     for j in 0..first {
-                        let voxel = &mut scratch.voxels[buf.slots[j] as usize];
+                        let voxel = &mut voxels[buf.slots[j] as usize];
                         let length = per_z * (buf.z1[j] - buf.z0[j]);
                         voxel.length += length;
                         voxel.sum += length * free;
                     }
                     for (j, m) in (first..).zip(&buf.out) {
-                        let voxel = &mut scratch.voxels[buf.slots[j] as usize];
+                        let voxel = &mut voxels[buf.slots[j] as usize];
                         let length = per_z * (buf.z1[j] - buf.z0[j]);
                         voxel.length += length;
                         voxel.sum += length * m;
@@ -653,7 +700,7 @@ mod tests {
         let compare = |e: &MrfEngine, what: &str| {
             let kf = &e.keyframes[1];
             let rays = FrameRays::new(&kf.frame);
-            let (mut scratch, mut skipped, mut entries) = (TileScratch::default(), 0, 0);
+            let (mut scratch, mut skipped, mut entries) = (Scratch::default(), 0, 0);
             for t in 0..kf.tiles.len() {
                 let near = e.trace_tile(kf, &rays, t, &mut scratch);
                 // The same tile walked from the camera.
@@ -703,6 +750,29 @@ mod tests {
         compare(&e, "after a nearer keyframe");
     }
 
+    /// A ray with more crossings than its buffers had room for is walked again, and the tile's
+    /// trace is the same, bit for bit.
+    #[test]
+    fn a_walk_out_of_room_is_walked_again_alike() {
+        let mut e = MrfEngine::new(0.05, Default::default(), MrfParams::default()).unwrap();
+        for frame in test_frames(3) {
+            e.add_keyframe(frame).unwrap();
+        }
+        e.run(1);
+        let kf = &e.keyframes[1];
+        let rays = FrameRays::new(&kf.frame);
+        let (mut roomy, mut tight) = (Scratch::default(), Scratch { max_room: 0, ..Scratch::default() });
+        let mut entries = 0;
+        for t in 0..kf.tiles.len() {
+            let (a, b) = (e.trace_tile(kf, &rays, t, &mut roomy), e.trace_tile(kf, &rays, t, &mut tight));
+            let show = |tr: &Traced| format!("{:?} {:?} {:?} {}", tr.tile, tr.changes, tr.gone, tr.rays);
+            assert_eq!(show(&a), show(&b), "tile {t}");
+            entries += a.tile.entries.len();
+        }
+        // (With no room at first, every ray longer than 8 crossings was walked twice.)
+        assert!(entries > 1000 && tight.rays.iter().any(|r| r.slots.len() > 8), "{entries} entries");
+    }
+
     /// The AVX2 copy of the tile trace gives the baseline copy's tiles bit for bit. (Every
     /// other test runs the copy this machine picks; this one runs both.)
     #[test]
@@ -715,7 +785,7 @@ mod tests {
         e.run(1); // beliefs away from the prior, so the cavities and messages vary
         let kf = &e.keyframes[1];
         let rays = FrameRays::new(&kf.frame);
-        let mut scratch = (TileScratch::default(), TileScratch::default());
+        let mut scratch = (Scratch::default(), Scratch::default());
         let (mut entries, mut compared) = (0, 0);
         for t in 0..kf.tiles.len() {
             let base = e.trace_tile_baseline(kf, &rays, t, &mut scratch.0);

@@ -501,7 +501,6 @@ macro_rules! tile_trace {
                             }
                             room = n;
                         };
-                        buf.ready = false;
                         self.$prep(kf, &ray, &seg, &mut likelihood, weight, buf);
                         // A ray's messages wait for the next ray's, so that the two are
                         // computed side by side (a ray that met no voxel leaves it waiting).
@@ -642,18 +641,18 @@ macro_rules! tile_trace {
                     ray_log_messages(f.odds, f.nu, f.nu_beyond, bound, f.out);
                 }
                 for buf in [this, next].into_iter().take(1 + usize::from(both)) {
-                    let (first, free, per_z) = (buf.first, buf.free, buf.per_z);
-                    for j in 0..first {
+                    // Crossing `j`'s message `m` added to its voxel, weighted by its length.
+                    let mut add = |j: usize, m: f64| {
                         let voxel = &mut voxels[buf.slots[j] as usize];
-                        let length = per_z * (buf.z1[j] - buf.z0[j]);
-                        voxel.length += length;
-                        voxel.sum += length * free;
-                    }
-                    for (j, m) in (first..).zip(&buf.out) {
-                        let voxel = &mut voxels[buf.slots[j] as usize];
-                        let length = per_z * (buf.z1[j] - buf.z0[j]);
+                        let length = buf.per_z * (buf.z1[j] - buf.z0[j]);
                         voxel.length += length;
                         voxel.sum += length * m;
+                    };
+                    for j in 0..buf.first {
+                        add(j, buf.free);
+                    }
+                    for (j, &m) in (buf.first..).zip(&buf.out) {
+                        add(j, m);
                     }
                     buf.ready = false;
                 }

@@ -2,21 +2,30 @@
 """Times the MRF engine's tile traces alone, per traced ray-voxel, for two revisions (#32 item 3).
 
 A whole `mrfmap bench` also times what is not a tile trace (frames, bricks, the serial
-applies of the traces' changes). This script builds both revisions with a few lines of
-instrumentation that are never committed: the wall time of each keyframe update's parallel
-tile traces (`update_tiles`), and a count of the voxel crossings the traces process, with
-the rounding slivers (shorter than 1e-9 voxel edges, which session 19 stopped walking)
-counted apart. It then runs `mrfmap bench` with each, alternating, and prints per revision
-the trace seconds, the crossings, and the nanoseconds per crossing that is not a sliver (the
-two revisions' counts of those should be equal when they walk the same voxels).
+applies of the traces' changes). This script builds each revision twice with a few lines of
+instrumentation that are never committed:
+
+- a *timed* build: the wall time of each keyframe update's parallel tile traces
+  (`update_tiles`), and nothing in the traces themselves;
+- a *counting* build: the same timer, and a count of the voxel crossings the traces process,
+  with the rounding slivers (shorter than 1e-9 voxel edges, which session 19 stopped walking)
+  counted apart. The count is a thread-local add in the loop over crossings: it costs the
+  same few instructions per crossing in either revision, which moves their ratio towards 1.
+
+The crossings are the same in every run (the traces do not depend on the thread count), so
+the counting builds run once each (`--counted-rounds`), and the timed builds `--rounds`
+times, alternating. Printed per revision: the trace seconds (median), the crossings, and the
+nanoseconds per crossing that is not a sliver, from the timed builds and, beside them, from
+the counting builds (the figure sessions 19-37 reported). The two revisions' counts of
+crossings that are not slivers should be equal when they walk the same voxels.
 
     python3 bench/trace_phase.py --base dfa1c32 --new HEAD ../shared/data/coffin-world \
         --resolution 0.02 --threads 2 --rounds 3
 
-Needs git and cargo; builds into git worktrees /tmp/trace-phase-<rev>/ (about two minutes
-each), kept for the next run (`git worktree remove --force /tmp/trace-phase-<rev>`). The
-instrumentation matches the trace's code by text; a revision it does not recognise stops the
-script with the line it looked for.
+Needs git and cargo; builds into git worktrees /tmp/trace-phase-<rev>/ (counting) and
+/tmp/trace-phase-<rev>-timed/ (about two minutes each), kept for the next run
+(`git worktree remove --force DIR`). The instrumentation matches the trace's code by text; a
+revision it does not recognise stops the script with the line it looked for.
 """
 
 import argparse
@@ -25,9 +34,11 @@ import re
 import subprocess
 import sys
 
-COUNTERS = """use rayon::prelude::*;
+TIMER = """use rayon::prelude::*;
 static TRACE_NS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
-static CROSSINGS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+"""
+
+COUNTERS = TIMER + """static CROSSINGS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
 static SLIVERS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
 thread_local! { static LOCAL: std::cell::Cell<(u64, u64)> = const { std::cell::Cell::new((0, 0)) }; }
 #[inline(always)]
@@ -47,12 +58,12 @@ COLLECT = re.compile(r"let pending: Vec<Traced> =\s*tiles\s*\.par_iter\(\)\s*"
 TIMED_COLLECT = """let t0 = std::time::Instant::now();
         let pending: Vec<Traced> = tiles
             .par_iter()
-            .map_init(SCRATCH::default, |scratch, &t| { let r = self.trace_tile(kf, &rays, t, scratch); flush(); r })
+            .map_init(SCRATCH::default, |scratch, &t| @TRACE@)
             .collect();
         {
             use std::sync::atomic::Ordering::Relaxed;
             let ns = TRACE_NS.fetch_add(t0.elapsed().as_nanos() as u64, Relaxed) + t0.elapsed().as_nanos() as u64;
-            eprintln!("TRACE ns={} crossings={} slivers={}", ns, CROSSINGS.load(Relaxed), SLIVERS.load(Relaxed));
+            eprintln!("TRACE ns={} crossings={} slivers={}", ns, @COUNTS@);
         }"""
 
 # Where each generation of the trace handles one crossing, and the counting line to add.
@@ -73,9 +84,10 @@ def sh(cmd, **kw):
     return subprocess.run(cmd, check=True, text=True, capture_output=True, **kw).stdout
 
 
-def build(repo, rev):
+def build(repo, rev, counting):
+    """Builds `rev` timed or counting; returns its short sha and the binary."""
     sha = sh(["git", "-C", repo, "rev-parse", "--short", rev]).strip()
-    tree = f"/tmp/trace-phase-{sha}"
+    tree = f"/tmp/trace-phase-{sha}" + ("" if counting else "-timed")
     if not os.path.isdir(tree):
         sh(["git", "-C", repo, "worktree", "add", "-f", "--detach", tree, sha])
     path = f"{tree}/crates/mrfmap/src/inference/mrf/trace.rs"
@@ -85,12 +97,18 @@ def build(repo, rev):
         if "use rayon::prelude::*;" not in src or collect is None:
             sys.exit(f"{rev}: trace.rs has no `use rayon::prelude::*;` or no traces like\n{COLLECT.pattern}")
         timed = TIMED_COLLECT.replace("SCRATCH", collect.group(1))
+        if counting:
+            timed = timed.replace("@TRACE@", "{ let r = self.trace_tile(kf, &rays, t, scratch); flush(); r }")
+            timed = timed.replace("@COUNTS@", "CROSSINGS.load(Relaxed), SLIVERS.load(Relaxed)")
+        else:
+            timed = timed.replace("@TRACE@", "self.trace_tile(kf, &rays, t, scratch)").replace("@COUNTS@", "0, 0")
         src = src[:collect.start()] + timed + src[collect.end():]
-        src = src.replace("use rayon::prelude::*;", COUNTERS, 1)
-        site = next((s for s in CROSSING_SITES if s[0] in src), None)
-        if site is None:
-            sys.exit(f"{rev}: trace.rs has none of the known crossing sites")
-        src = src.replace(site[0], site[0] + site[1])
+        src = src.replace("use rayon::prelude::*;", COUNTERS if counting else TIMER, 1)
+        if counting:
+            site = next((s for s in CROSSING_SITES if s[0] in src), None)
+            if site is None:
+                sys.exit(f"{rev}: trace.rs has none of the known crossing sites")
+            src = src.replace(site[0], site[0] + site[1])
         open(path, "w").write(src)
     subprocess.run(["cargo", "build", "--release", "-q", "-p", "mrfmap-cli"], cwd=tree, check=True,
                    env={**os.environ, "CARGO_TARGET_DIR": f"{tree}/target"})
@@ -111,24 +129,31 @@ def main():
     ap.add_argument("--new", default="HEAD")
     ap.add_argument("--resolution", default="0.02")
     ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--rounds", type=int, default=3, help="runs of each timed build")
+    ap.add_argument("--counted-rounds", type=int, default=1, help="runs of each counting build")
     a = ap.parse_args()
     repo = sh(["git", "rev-parse", "--show-toplevel"]).strip()
-    revs = [build(repo, a.base), build(repo, a.new)]
-    runs = {sha: [] for sha, _ in revs}
-    for _ in range(a.rounds):
-        for sha, binary in revs:
-            runs[sha].append(run(binary, a))
-    print(f"| revision | trace s (median of {a.rounds}) | crossings | of which slivers | ns per crossing, slivers left out |")
-    print("|---|---|---|---|---|")
+    builds = {counting: [build(repo, rev, counting) for rev in (a.base, a.new)] for counting in (True, False)}
+    shas = [sha for sha, _ in builds[False]]
+    runs = {(sha, counting): [] for sha in shas for counting in (True, False)}
+    for counting, rounds in ((True, a.counted_rounds), (False, a.rounds)):
+        for _ in range(rounds):
+            for sha, binary in builds[counting]:
+                runs[(sha, counting)].append(run(binary, a))
+    median = lambda xs: sorted(xs)[len(xs) // 2]
+    print(f"| revision | trace s, timed (median of {a.rounds}) | crossings | of which slivers "
+          f"| ns per crossing, slivers left out: timed | counting (median of {a.counted_rounds}) |")
+    print("|---|---|---|---|---|---|")
     per = {}
-    for sha, _ in revs:
-        ns = sorted(r[0] for r in runs[sha])[len(runs[sha]) // 2]
-        _, crossings, slivers = runs[sha][0]
-        per[sha] = ns / (crossings - slivers)
-        print(f"| {sha} | {ns / 1e9:.2f} | {crossings:,} | {slivers:,} | {per[sha]:.1f} |")
-    (base, _), (new, _) = revs
-    print(f"\n{new} / {base}, per crossing that is not a sliver: {per[new] / per[base]:.3f}")
+    for sha in shas:
+        _, crossings, slivers = runs[(sha, True)][0]
+        real = crossings - slivers
+        timed, counted = (median([r[0] for r in runs[(sha, c)]]) for c in (False, True))
+        per[sha] = (timed / real, counted / real)
+        print(f"| {sha} | {timed / 1e9:.2f} | {crossings:,} | {slivers:,} | {per[sha][0]:.1f} | {per[sha][1]:.1f} |")
+    base, new = shas
+    print(f"\n{new} / {base}, per crossing that is not a sliver: timed {per[new][0] / per[base][0]:.3f}, "
+          f"counting {per[new][1] / per[base][1]:.3f}")
 
 
 if __name__ == "__main__":

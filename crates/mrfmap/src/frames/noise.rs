@@ -363,7 +363,8 @@ pub struct RayLikelihood<'a> {
 pub struct Intervals {
     /// Per interval, its likelihood density.
     pub density: Vec<f64>,
-    /// The intervals' far ends from the first that may be nonzero on, padded to whole vectors.
+    /// The boundaries' z-depths, from the first interval that may be nonzero on: its near end,
+    /// then every interval's far end, padded to whole vectors.
     z: Vec<f64>,
     /// The boundaries of the intervals from the first that may be nonzero on, field by field
     /// ([`Boundary`]'s), so that each step is a loop the compiler vectorises: the first one's
@@ -424,18 +425,25 @@ impl RayLikelihood<'_> {
         density
     }
 
+    /// The z-depth before which an interval's likelihood is 0: intervals ending before it lie
+    /// more than [`TAIL_CUTOFF`] std in front of the reading.
+    pub fn zero_before(&self) -> f64 {
+        self.zero_before
+    }
+
     /// [`RayLikelihood::over`] of consecutive intervals `[z0[j], z1[j]]` (ascending, each
     /// starting where the last ended or later) into `out.density` (cleared first): the same
-    /// values, bit for bit, in a fraction of the instructions. The intervals more than
-    /// [`TAIL_CUTOFF`] std in front of the reading are skipped whole; for the rest each step
-    /// (the boundaries' fields, their tails, the densities) is a loop of its own over the
-    /// intervals, on one vector per field, and the rare cases (gaps between intervals,
-    /// intervals too short for the tails) are patched afterwards.
+    /// values, bit for bit, in a fraction of the instructions. The first `start` intervals, the
+    /// ones that end before [`RayLikelihood::zero_before`] (`z1[j] < zero_before`, which the
+    /// caller counts), are skipped whole; for the rest each step (the
+    /// boundaries' fields, their tails, the densities) is a loop of its own over the intervals,
+    /// on one vector per field, and the rare cases (gaps between intervals, intervals too short
+    /// for the tails) are patched afterwards.
     #[inline(always)] // (so that the AVX2 copy of a tile trace has it in four lanes)
-    pub fn over_each(&mut self, z0: &[f64], z1: &[f64], out: &mut Intervals) {
+    pub fn over_each(&mut self, start: usize, z0: &[f64], z1: &[f64], out: &mut Intervals) {
         debug_assert_eq!(z0.len(), z1.len());
+        debug_assert_eq!(start, z1.partition_point(|&z| z < self.zero_before));
         let n = z1.len();
-        let start = z1.partition_point(|&z| z < self.zero_before);
         out.density.clear();
         out.density.resize(n, 0.0);
         if start == n {
@@ -450,30 +458,32 @@ impl RayLikelihood<'_> {
         // a large part of its likelihood.)
         let m = z1.len();
         let m4 = m.next_multiple_of(VECTOR_LANES);
+        // Boundaries: `m + 1` of them, over whole vectors as well.
+        let b4 = (m + 1).next_multiple_of(VECTOR_LANES);
         // (The buffers only grow, and every value read is written first: zeroing them for each
         // ray was a memset call per buffer, 1% of a trace.)
         for v in [&mut *z, &mut *w, &mut *sigma, &mut *x, &mut *tail] {
-            if v.len() <= m4 {
-                v.resize(m4 + 1, 0.0);
+            if v.len() < m4 + VECTOR_LANES {
+                v.resize(m4 + VECTOR_LANES, 0.0);
             }
         }
-        z[..m].copy_from_slice(z1);
-        z[m..m4].fill(z1[m - 1]);
+        z[0] = z0[0];
+        z[1..=m].copy_from_slice(z1);
+        z[m + 1..b4].fill(z1[m - 1]);
         density.resize(start + m4, 0.0);
         // Each interval's boundaries ([`RayLikelihood::boundary`], field by field): the first
         // one's near boundary at 0, then every interval's far one, so that interval `j` lies
         // between boundaries `j` and `j + 1`. (Plain loops: `extend` of a mapped iterator went
-        // through a `fold` that the AVX2 copy of the trace did not inline.)
-        let near = self.boundary(z0[0]);
-        (w[0], sigma[0], x[0]) = (near.w, near.sigma, near.x);
-        let fields = w[1..=m4].iter_mut().zip(sigma[1..=m4].iter_mut()).zip(x[1..=m4].iter_mut());
-        for (&z, ((w, sigma), x)) in z[..m4].iter().zip(fields) {
+        // through a `fold` that the AVX2 copy of the trace did not inline. The near boundary
+        // in the loops too: on its own it was a scalar `upper_tail`, a long chain of
+        // dependent operations per ray.)
+        let fields = w[..b4].iter_mut().zip(sigma[..b4].iter_mut()).zip(x[..b4].iter_mut());
+        for (&z, ((w, sigma), x)) in z[..b4].iter().zip(fields) {
             *w = z + bias.eval(z);
             *sigma = std.eval(z).max(STD_FLOOR) * scale;
             *x = (*w - measured) / *sigma;
         }
-        tail[0] = upper_tail(x[0].abs());
-        for (tail, &x) in tail[1..=m4].iter_mut().zip(&x[1..=m4]) {
+        for (tail, &x) in tail[..b4].iter_mut().zip(&x[..b4]) {
             *tail = upper_tail(x.abs());
         }
         let bound = |j: usize| Boundary { w: w[j], sigma: sigma[j], x: x[j], tail: tail[j] };
@@ -764,7 +774,8 @@ mod tests {
             let mut walk = m.along_ray(0, 0, measured);
             let want: Vec<u64> = z0.iter().zip(&z1).map(|(&a, &b)| walk.over(a, b).to_bits()).collect();
             let mut batch = m.along_ray(0, 0, measured);
-            batch.over_each(&z0, &z1, &mut out);
+            let start = z1.iter().filter(|&&z| z < batch.zero_before()).count();
+            batch.over_each(start, &z0, &z1, &mut out);
             let got: Vec<u64> = out.density.iter().map(|d| d.to_bits()).collect();
             assert_eq!(got, want, "trial {trial}");
             // And the walk carries on from the batch's last boundary alike.

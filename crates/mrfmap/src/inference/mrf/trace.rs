@@ -66,6 +66,10 @@ struct TileScratch<'a> {
     /// The first `used` are in use (the rest are kept for reuse).
     tables: Vec<SlotTable<'a>>,
     used: usize,
+    /// Per table, a block of [`BRICK_VOXELS`]: per slot of its brick, the voxel's index in
+    /// `voxels` (`u32::MAX` for none). (One array for all tables: a crossing finds its voxel
+    /// with one load fewer than through a block of the table's own.)
+    index: Vec<u32>,
 }
 
 /// A thread's buffers for tracing tiles: the tile's voxels, and two rays' buffers apart from
@@ -109,14 +113,13 @@ fn recent_slot(key: BrickKey) -> usize {
     (h >> (32 - RECENT.trailing_zeros())) as usize
 }
 
-/// One brick's voxels among a tile's: its sums, per slot the index in
-/// [`TileScratch::voxels`] (`u32::MAX` for none), and which slots are set. A ray is traced
+/// One brick's voxels among a tile's: its sums, and which slots are set (their indices in
+/// [`TileScratch::voxels`] are the table's block of [`TileScratch::index`]). A ray is traced
 /// brick by brick, so its voxels are found by one brick lookup and array indexing (a hash
 /// lookup per voxel was a tenth of a trace, and sorting the voxels afterwards another 7%).
 struct SlotTable<'a> {
     key: BrickKey,
     sums: Option<&'a [f32; BRICK_VOXELS]>,
-    index: Box<[u32; BRICK_VOXELS]>,
     set: SlotMask,
 }
 
@@ -129,15 +132,16 @@ impl Default for TileScratch<'_> {
             recent: Box::new([(NO_BRICK, 0); RECENT]),
             tables: Vec::new(),
             used: 0,
+            index: Vec::new(),
         }
     }
 }
 
 impl<'a> TileScratch<'a> {
     fn clear(&mut self) {
-        for table in &mut self.tables[..self.used] {
+        for (table, index) in self.tables[..self.used].iter_mut().zip(self.index.chunks_exact_mut(BRICK_VOXELS)) {
             for slot in mask_slots(&table.set) {
-                table.index[slot] = u32::MAX;
+                index[slot] = u32::MAX;
             }
             table.set = [0; 8];
         }
@@ -191,7 +195,8 @@ impl<'a> TileScratch<'a> {
 
     fn add_table(&mut self, key: BrickKey, sums: Option<&'a [f32; BRICK_VOXELS]>) -> u32 {
         if self.used == self.tables.len() {
-            self.tables.push(SlotTable { key, sums, index: Box::new([u32::MAX; BRICK_VOXELS]), set: [0; 8] });
+            self.tables.push(SlotTable { key, sums, set: [0; 8] });
+            self.index.resize(self.tables.len() * BRICK_VOXELS, u32::MAX);
         }
         let table = &mut self.tables[self.used];
         (table.key, table.sums) = (key, sums);
@@ -215,16 +220,16 @@ impl<'a> TileScratch<'a> {
     /// The index of voxel `key` of table `t`'s brick, added with the tile's `old` entry if new.
     #[inline]
     fn voxel_in(&mut self, t: usize, key: VoxelKey, old: Option<Entry>) -> usize {
-        let table = &mut self.tables[t];
         let slot = key.slot();
-        let i = table.index[slot];
+        let at = t * BRICK_VOXELS + slot;
+        let i = self.index[at];
         if i != u32::MAX {
             return i as usize;
         }
         let own = old.map_or(0.0, |e| if e.edges() > 0.0 { e.message() / e.edges() } else { 0.0 });
         let i = self.voxels.len();
-        table.index[slot] = i as u32;
-        mask_set(&mut table.set, slot);
+        self.index[at] = i as u32;
+        mask_set(&mut self.tables[t].set, slot);
         self.voxels.push(VoxelAcc { own, length: 0.0, sum: 0.0 });
         self.keys.push((key, old));
         i
@@ -233,7 +238,7 @@ impl<'a> TileScratch<'a> {
     /// [`TileScratch::voxel_in`] by slot of table `t`'s brick, for a voxel no old entry names.
     #[inline]
     fn voxel_at(&mut self, t: usize, slot: usize) -> usize {
-        match self.tables[t].index[slot] {
+        match self.index[t * BRICK_VOXELS + slot] {
             u32::MAX => self.voxel_in(t, self.tables[t].key.voxel(slot), None),
             i => i as usize,
         }
@@ -242,10 +247,11 @@ impl<'a> TileScratch<'a> {
     /// The voxels' indices by brick, then slot, each with its `S` as traced (0 in a brick
     /// no longer in the map, whose voxels no ray reached).
     fn sorted(&self) -> impl Iterator<Item = (usize, f32)> + '_ {
-        let mut order: Vec<&SlotTable> = self.tables[..self.used].iter().collect();
-        order.sort_unstable_by_key(|t| t.key);
-        order.into_iter().flat_map(|t| {
-            mask_slots(&t.set).map(|slot| (t.index[slot] as usize, t.sums.map_or(0.0, |sums| sums[slot])))
+        let mut order: Vec<(&SlotTable, &[u32])> =
+            self.tables[..self.used].iter().zip(self.index.chunks_exact(BRICK_VOXELS)).collect();
+        order.sort_unstable_by_key(|(t, _)| t.key);
+        order.into_iter().flat_map(|(t, index)| {
+            mask_slots(&t.set).map(|slot| (index[slot] as usize, t.sums.map_or(0.0, |sums| sums[slot])))
         })
     }
 }

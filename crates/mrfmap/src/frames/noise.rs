@@ -425,29 +425,26 @@ impl RayLikelihood<'_> {
         density
     }
 
-    /// The z-depth before which an interval's likelihood is 0: intervals ending before it lie
-    /// more than [`TAIL_CUTOFF`] std in front of the reading.
-    pub fn zero_before(&self) -> f64 {
-        self.zero_before
-    }
-
     /// [`RayLikelihood::over`] of consecutive intervals `[z0[j], z1[j]]` (ascending, each
     /// starting where the last ended or later) into `out.density` (cleared first): the same
-    /// values, bit for bit, in a fraction of the instructions. The first `start` intervals, the
-    /// ones that end before [`RayLikelihood::zero_before`] (`z1[j] < zero_before`, which the
-    /// caller counts), are skipped whole; for the rest each step (the
-    /// boundaries' fields, their tails, the densities) is a loop of its own over the intervals,
-    /// on one vector per field, and the rare cases (gaps between intervals, intervals too short
-    /// for the tails) are patched afterwards.
+    /// values, bit for bit, in a fraction of the instructions. The intervals more than
+    /// [`TAIL_CUTOFF`] std in front of the reading are skipped whole (their density is 0, and
+    /// how many they are is returned); for the rest each step (the boundaries' fields, their
+    /// tails, the densities) is a loop of its own over the intervals, on one vector per field,
+    /// and the rare cases (gaps between intervals, intervals too short for the tails) are
+    /// patched afterwards.
     #[inline(always)] // (so that the AVX2 copy of a tile trace has it in four lanes)
-    pub fn over_each(&mut self, start: usize, z0: &[f64], z1: &[f64], out: &mut Intervals) {
+    pub fn over_each(&mut self, z0: &[f64], z1: &[f64], out: &mut Intervals) -> usize {
         debug_assert_eq!(z0.len(), z1.len());
-        debug_assert_eq!(start, z1.partition_point(|&z| z < self.zero_before));
+        // (Counted in whole vectors, the intervals being ascending: a binary search, a chain of
+        // dependent loads, cost more on rays of two dozen voxels.)
+        let zero_before = self.zero_before;
+        let start = z1.iter().filter(|&&z| z < zero_before).count();
         let n = z1.len();
         out.density.clear();
         out.density.resize(n, 0.0);
         if start == n {
-            return;
+            return start;
         }
         let (z0, z1) = (&z0[start..], &z1[start..]);
         let Intervals { density, z, w, sigma, x, tail, marks } = out;
@@ -523,6 +520,7 @@ impl RayLikelihood<'_> {
         }
         self.last = Some((z1[m - 1], bound(m)));
         out.density.truncate(n);
+        start
     }
 
     /// The density between boundaries `a` and `b` (see [`RayLikelihood::over`]).
@@ -774,8 +772,7 @@ mod tests {
             let mut walk = m.along_ray(0, 0, measured);
             let want: Vec<u64> = z0.iter().zip(&z1).map(|(&a, &b)| walk.over(a, b).to_bits()).collect();
             let mut batch = m.along_ray(0, 0, measured);
-            let start = z1.iter().filter(|&&z| z < batch.zero_before()).count();
-            batch.over_each(start, &z0, &z1, &mut out);
+            batch.over_each(&z0, &z1, &mut out);
             let got: Vec<u64> = out.density.iter().map(|d| d.to_bits()).collect();
             assert_eq!(got, want, "trial {trial}");
             // And the walk carries on from the batch's last boundary alike.

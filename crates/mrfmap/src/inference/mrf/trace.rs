@@ -604,11 +604,7 @@ macro_rules! tile_trace {
                     (buf.z0[n], buf.z1[n]) = (z0, z1);
                 }
                 let intervals = n + usize::from(stretch.is_some());
-                // (Counted in whole vectors: a binary search, a chain of dependent loads, cost
-                // more on rays of two dozen voxels.)
-                let zero_before = likelihood.zero_before();
-                let start = buf.z1[..intervals].iter().filter(|&&z| z < zero_before).count();
-                likelihood.over_each(start, &buf.z0[..intervals], &buf.z1[..intervals], &mut buf.nu);
+                let skipped = likelihood.over_each(&buf.z0[..intervals], &buf.z1[..intervals], &mut buf.nu);
                 buf.beyond = match stretch {
                     Some(_) => buf.nu.density.pop().unwrap_or(0.0),
                     None => 1.0,
@@ -621,9 +617,9 @@ macro_rules! tile_trace {
                 // `ray_log_messages` stays 0 through them). So they need no cavity and no
                 // place in the ray's factor; their message is 0 (clamped), unless the ray has
                 // no likelihood anywhere, beyond included, and says nothing (1/2).
-                // (The first `start` are 0: skipped by the likelihood.)
+                // (The first `skipped` are 0: the likelihood skipped them.)
                 let nu = &buf.nu.density;
-                let skipped = start.min(nu.len());
+                let skipped = skipped.min(nu.len());
                 buf.first = skipped + nu[skipped..].iter().position(|&nu| nu > 0.0).unwrap_or(nu.len() - skipped);
                 buf.free = if buf.first < nu.len() || buf.beyond > 0.0 { logit(MSG_EPS) } else { 0.0 };
                 // (A voxel's length in voxel edges, weighted: its z-depths' difference.)

@@ -376,6 +376,20 @@ impl<V: Copy + Default> Brick<V> {
         }
     }
 
+    /// The allocated slots whose value satisfies `f` (a layer at a time).
+    #[inline]
+    pub fn slots_where(&self, f: impl Fn(&V) -> bool) -> SlotMask {
+        std::array::from_fn(|w| {
+            let bits = self.mask[w];
+            if bits == 0 {
+                return 0;
+            }
+            let base = self.layer[w] as usize * LAYER;
+            let layer = &self.values[base..base + LAYER];
+            layer.iter().enumerate().fold(0u64, |m, (i, v)| m | (f(v) as u64) << i) & bits
+        })
+    }
+
     /// The same slots with every allocated value mapped through `f` (layer by layer).
     pub fn map<W: Copy + Default>(&self, mut f: impl FnMut(&V) -> W) -> Brick<W> {
         let mut values = vec![W::default(); self.values.len()];

@@ -117,7 +117,7 @@ pub fn surface_truth(
     let mut truth = Grid::new(resolution)?;
     let mut projector = Projector::default();
     for frame in frames {
-        let seen = projector.crossed_voxels(&frame?, limits, resolution, None);
+        let seen = projector.crossed_voxels(&frame?, limits, resolution, None, None);
         // Crossed voxels enter free (an occupied one stays so); then this frame's surfaces.
         for (brick, mask) in &seen.crossed {
             truth.brick_or_insert(*brick).update_slots(mask, free, |_| {});

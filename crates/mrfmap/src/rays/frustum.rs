@@ -40,7 +40,7 @@ use rayon::prelude::*;
 
 use std::ops::ControlFlow;
 
-use super::{CameraRays, FrameRays, PixelRay, RayLimits, for_each_crossing};
+use super::{CameraRays, FrameRays, PLAIN_COLUMNS, PixelRay, PlainBlock, RayLimits, for_each_crossing};
 use crate::frames::{Camera, DepthImage, Frame};
 use crate::map::{Aabb, box_keys};
 use crate::map::{BRICK_EDGE, BrickKey, SlotMask, VoxelKey, floor_i32, mask_has, mask_set, mask_slots};
@@ -406,11 +406,11 @@ impl Segments {
     /// Fills the buffers for an image of `width x height` pixels, row `v` by
     /// `fill_row(v, pixels, ends, above)`: it sets the segments of the row's `pixels` (which
     /// start with none; with `starts` false every segment it sets must start at 0) and adds
-    /// the voxels of their surface ends to `ends` with [`note_end`] (`above[u]` is column `u`'s,
-    /// kept from row to row). Returns the ends.
+    /// the voxels of their surface ends to `ends` with [`note_ends`] or [`note_end`] (`above`
+    /// holds the row above's, kept from row to row by each task). Returns the ends.
     fn fill_with<F>(&mut self, (width, height): (usize, usize), starts: bool, fill_row: F) -> Vec<VoxelKey>
     where
-        F: Fn(usize, PixelRow<'_>, &mut Vec<VoxelKey>, &mut [[f64; 3]]) + Sync,
+        F: Fn(usize, PixelRow<'_>, &mut Vec<VoxelKey>, &mut AboveEnds) + Sync,
     {
         (self.width, self.height) = (width, height);
         // Every pixel is written below, so only a change of size needs new buffers.
@@ -441,8 +441,8 @@ impl Segments {
             .zip(blocks.cells.par_chunks_mut(blocks.width))
             .enumerate()
             .map_init(
-                // (`above[u]`: NaN for none, which every comparison fails.)
-                || (Vec::new(), vec![[f64::NAN; 3]; width]),
+                // (The end voxels of the row above, kept from row to row.)
+                || (Vec::new(), AboveEnds::new(width)),
                 |(pairs, above), (chunk, ((ends_of, mut starts_of), block_row))| {
                     let mut ends = Vec::new();
                     for (dv, e) in ends_of.chunks_mut(width).enumerate() {
@@ -562,9 +562,10 @@ impl Segments {
 
 /// Defines under `$name` the filling of row `v` of [`Segments`] (see [`Segments::fill`]): one
 /// source for the copy built for the binary's baseline and the copy built for AVX2, whose
-/// closures and lane loops (the plain pixels' ranges, depths and ends, [`FrameRays::row_plain`])
-/// are compiled with its features (closures in a shared inlined body would not be). The same
-/// values bit for bit: no fused multiply-adds.
+/// closures and lane loops (the plain pixels' ranges, depths and end voxels,
+/// [`FrameRays::row_plain`], and which end voxels are new, [`note_ends`]) are compiled with its
+/// features (closures in a shared inlined body would not be). The same values bit for bit: no
+/// fused multiply-adds.
 ///
 /// With `CUT` (only without bounds), the readings beyond the max range are cut in lanes too
 /// ([`FrameRays::row_cut`]); without, one ray at a time. Two copies, not one with a test:
@@ -580,10 +581,9 @@ macro_rules! segments_row {
             v: usize,
             mut pixels: PixelRow<'_>,
             ends: &mut Vec<VoxelKey>,
-            above: &mut [[f64; 3]],
+            above: &mut AboveEnds,
         ) {
             let inv_r = 1.0 / resolution;
-            let mut last_end = [f64::NAN; 3]; // no end yet
             // A ray's segment as the pixel's depths, with its end (voxel units) if that is a
             // measured surface.
             let segment = |ray: &PixelRay| {
@@ -598,32 +598,33 @@ macro_rules! segments_row {
             let max_range = limits.max_range.unwrap_or(f64::INFINITY);
             let v = v as u32;
             let plain = limits.bounds.is_none() && {
-                let row_ends = &mut *pixels.ends;
+                let (row_ends, mut last_key) = (&mut *pixels.ends, None);
                 if CUT {
                     rays.row_cut(v, limits, resolution, row_ends);
                 }
-                rays.row_plain(v, max_range, inv_r, |u, plain| {
-                    let (z, end) = match plain {
-                        Some((z, end)) => (z, Some(end)),
-                        None if CUT => return, // (set by `row_cut`)
-                        None => match rays.ray(u as u32, v).as_ref().and_then(segment) {
-                            Some((depths, end)) => (depths.0[1], end),
-                            None => return,
-                        },
-                    };
-                    row_ends[u] = z;
-                    if let Some(q) = end {
-                        note_end(q, &mut last_end, &mut above[u], ends);
+                rays.row_plain(v, max_range, inv_r, |start, b| {
+                    for k in 0..b.len {
+                        if b.plain[k] {
+                            row_ends[start + k] = b.z_end[k];
+                        } else if !CUT && b.valid[k] {
+                            // (Cut by the max range: no surface. With `CUT`, set by `row_cut`.)
+                            let ray = rays.ray((start + k) as u32, v);
+                            if let Some((depths, _)) = ray.as_ref().and_then(segment) {
+                                row_ends[start + k] = depths.0[1];
+                            }
+                        }
                     }
+                    note_ends(start, b, &mut last_key, above, ends);
                 })
             };
             if !plain {
+                let mut last = None;
                 for ray in rays.row(v) {
                     if let Some((depths, end)) = segment(&ray) {
                         let u = ray.u as usize;
                         pixels.set(u, depths);
                         if let Some(q) = end {
-                            note_end(q, &mut last_end, &mut above[u], ends);
+                            note_end(u, q, &mut last, above, ends);
                         }
                     }
                 }
@@ -795,25 +796,93 @@ impl PixelRow<'_> {
     }
 }
 
-/// Adds to `ends` the voxel holding a segment end at `q` (in voxel units), unless it is
-/// `last` (the end voxel of the pixel to the left) or `above` (of the same column in an earlier
-/// row), and makes it both. Neighbouring pixels mostly end in the same voxel as the one to
-/// their left or above (`floor(q) == e` exactly when `e <= q < e + 1`), which is cheaper to
-/// check than three floors (a quarter of the setup's loop), and keeps each voxel about once in
-/// `ends`, not once a row. NaN in `last` or `above` means none.
-#[inline(always)]
-fn note_end(q: [f64; 3], last: &mut [f64; 3], above: &mut [f64; 3], ends: &mut Vec<VoxelKey>) {
-    let holds = |e: &[f64; 3]| (0..3).all(|a| q[a] >= e[a] && q[a] < e[a] + 1.0);
-    if holds(last) {
-        *above = *last;
-    } else if holds(above) {
-        *last = *above;
-    } else {
-        let end = VoxelKey([floor_i32(q[0]), floor_i32(q[1]), floor_i32(q[2])]);
-        *last = end.0.map(|k| k as f64);
-        *above = *last;
-        ends.push(end);
+/// Per column, the end voxel of the nearest row above with a surface there, as a filling
+/// task keeps them from row to row (by axis, so that a block of columns reads as lanes).
+#[derive(Clone, Debug, Default)]
+struct AboveEnds {
+    key: [Vec<i32>; 3],
+    has: Vec<bool>,
+}
+
+impl AboveEnds {
+    fn new(width: usize) -> Self {
+        AboveEnds { key: std::array::from_fn(|_| vec![0; width]), has: vec![false; width] }
     }
+
+    fn get(&self, u: usize) -> Option<[i32; 3]> {
+        self.has[u].then(|| self.key.each_ref().map(|k| k[u]))
+    }
+}
+
+/// Adds to `ends` the voxel holding the segment end at `q` (voxel units) of column `u`,
+/// unless it is `last`'s (the end voxel of the pixel to the left: its key and its lower
+/// corner) or the column's in [`AboveEnds`], and makes it both. Neighbouring pixels mostly end
+/// in the same voxel, so each voxel goes into `ends` about once, not once a pixel (skipping
+/// one is right: `last` and the one above went in, or were skipped for the same reason,
+/// earlier); and mostly in the voxel to their left, which is cheaper to check than three
+/// floors (`floor(q) == e` exactly when `e <= q < e + 1`).
+#[inline(always)]
+fn note_end(
+    u: usize,
+    q: [f64; 3],
+    last: &mut Option<([i32; 3], [f64; 3])>,
+    above: &mut AboveEnds,
+    ends: &mut Vec<VoxelKey>,
+) {
+    if let Some((_, e)) = last
+        && (0..3).all(|a| q[a] >= e[a] && q[a] < e[a] + 1.0)
+    {
+        return;
+    }
+    let key = q.map(floor_i32);
+    if above.get(u) != Some(key) {
+        ends.push(VoxelKey(key));
+    }
+    *last = Some((key, key.map(|k| k as f64)));
+    for (a, k) in above.key.iter_mut().enumerate() {
+        k[u] = key[a];
+    }
+    above.has[u] = true;
+}
+
+/// [`note_end`] for the plain pixels of a block of a row from column `start` (the others
+/// have no surface), with `last` the end voxel of the block's left neighbour: whether each is
+/// new is decided in lanes, against the pixel just to its left and the row above (a branch
+/// per pixel on those comparisons was most of the setup's time).
+#[inline(always)]
+fn note_ends(
+    start: usize,
+    b: &PlainBlock,
+    last: &mut Option<[i32; 3]>,
+    above: &mut AboveEnds,
+    ends: &mut Vec<VoxelKey>,
+) {
+    let n = b.len;
+    let mut left = [[0i32; PLAIN_COLUMNS]; 3];
+    let mut left_has = [false; PLAIN_COLUMNS];
+    for (a, l) in left.iter_mut().enumerate() {
+        l[0] = last.map_or(0, |k| k[a]);
+        l[1..n].copy_from_slice(&b.key[a][..n - 1]);
+    }
+    left_has[0] = last.is_some();
+    left_has[1..n].copy_from_slice(&b.plain[..n - 1]);
+    let up = above.key.each_ref().map(|k| &k[start..start + n]);
+    let up_has = &above.has[start..start + n];
+    let mut new = [false; PLAIN_COLUMNS];
+    for k in 0..n {
+        let (x, y, z) = (b.key[0][k], b.key[1][k], b.key[2][k]);
+        let same_left = left_has[k] & (x == left[0][k]) & (y == left[1][k]) & (z == left[2][k]);
+        let same_up = up_has[k] & (x == up[0][k]) & (y == up[1][k]) & (z == up[2][k]);
+        new[k] = b.plain[k] & !same_left & !same_up;
+    }
+    for (k, _) in new[..n].iter().enumerate().filter(|(_, new)| **new) {
+        ends.push(VoxelKey([b.key[0][k], b.key[1][k], b.key[2][k]]));
+    }
+    for (a, k) in above.key.iter_mut().enumerate() {
+        k[start..start + n].copy_from_slice(&b.key[a][..n]);
+    }
+    above.has[start..start + n].copy_from_slice(&b.plain[..n]);
+    *last = b.plain[n - 1].then(|| [b.key[0][n - 1], b.key[1][n - 1], b.key[2][n - 1]]);
 }
 
 /// Pixels `u0..=u1` by `v0..=v1`.
@@ -1537,7 +1606,7 @@ pub(super) mod tests {
     }
 
     /// A row's filling, as [`Segments::fill_with`] takes it.
-    type RowFill<'r> = dyn Fn(usize, PixelRow<'_>, &mut Vec<VoxelKey>, &mut [[f64; 3]]) + Sync + 'r;
+    type RowFill<'r> = dyn Fn(usize, PixelRow<'_>, &mut Vec<VoxelKey>, &mut AboveEnds) + Sync + 'r;
 
     /// Readings beyond the max range cut in lanes ([`FrameRays::row_cut`], the copies with
     /// `CUT`) give the segments of [`RayLimits::hit_miss_segment`] one ray at a time (the

@@ -21,7 +21,7 @@ use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
 use crate::frames::{Camera, DepthImage, Frame, NoiseModel, Pose, RangeScan, RayLikelihood};
-use crate::map::Aabb;
+use crate::map::{Aabb, floor_i32_lanes};
 
 /// A world-space ray through one valid depth pixel (or one beam of a range scan).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -224,53 +224,65 @@ impl<'a> FrameRays<'a> {
 }
 
 /// Columns [`FrameRays::row_plain`] computes at a time (its buffers live on the stack).
-const PLAIN_COLUMNS: usize = 64;
+pub(crate) const PLAIN_COLUMNS: usize = 64;
+
+/// [`PLAIN_COLUMNS`] pixels of a row (fewer at its end), as [`FrameRays::row_plain`] gives
+/// them: per column whether its depth is valid, whether it is plain (valid and within the max
+/// range), and for the plain ones the surface's camera z-depth and the voxel key (per axis)
+/// of its point multiplied by the scale. The other columns' values are meaningless.
+pub(crate) struct PlainBlock {
+    pub len: usize,
+    pub valid: [bool; PLAIN_COLUMNS],
+    pub plain: [bool; PLAIN_COLUMNS],
+    pub z_end: [f32; PLAIN_COLUMNS],
+    pub key: [[i32; PLAIN_COLUMNS]; 3],
+}
 
 impl FrameRays<'_> {
-    /// Row `v`'s valid pixels left to right by `visit(u, plain)`: `plain` is the surface's
-    /// camera z-depth and its point multiplied by `scale` where the reading lies within
-    /// `max_range` (infinite for none), `None` for the others (their rays are
-    /// [`FrameRays::ray`]). The plain ones are computed 64 at a time in loops the compiler
-    /// vectorises, the same values bit for bit as from their rays (`range * cz` and
-    /// `(origin + range dir) scale`, without fused operations). Does nothing and returns
-    /// false without cached camera rays ([`FrameRays::with_camera_rays`]).
+    /// Row `v` a block of pixels at a time, left to right, by `visit(first column, block)`
+    /// ([`PlainBlock`]): a plain pixel's reading lies within `max_range` (infinite for none);
+    /// the other valid ones' rays are [`FrameRays::ray`]. Each block is computed in loops the
+    /// compiler vectorises, the same values bit for bit as from the pixels' rays (`range *
+    /// cz`, and `floor((origin + range dir) scale)` with [`floor_i32`], without fused
+    /// operations). Does nothing and returns false without cached camera rays
+    /// ([`FrameRays::with_camera_rays`]).
     #[inline(always)]
     pub(crate) fn row_plain(
         &self,
         v: u32,
         max_range: f64,
         scale: f64,
-        mut visit: impl FnMut(usize, Option<(f32, [f64; 3])>),
+        mut visit: impl FnMut(usize, &PlainBlock),
     ) -> bool {
         let Some(c) = self.camera_rays else { return false };
         let (norms, invs) = c.row_norms(v);
         let (y, depth, rotation, origin) = (c.ys[v as usize], self.frame.depth.row(v), &self.rotation, self.origin);
-        let mut range = [0.0f64; PLAIN_COLUMNS];
-        let mut z_end = [0.0f32; PLAIN_COLUMNS];
-        let mut end = [[0.0f64; PLAIN_COLUMNS]; 3];
+        let mut b = PlainBlock {
+            len: 0,
+            valid: [false; PLAIN_COLUMNS],
+            plain: [false; PLAIN_COLUMNS],
+            z_end: [0.0; PLAIN_COLUMNS],
+            key: [[0; PLAIN_COLUMNS]; 3],
+        };
         for start in (0..depth.len()).step_by(PLAIN_COLUMNS) {
             let stop = (start + PLAIN_COLUMNS).min(depth.len());
             let (zs, xs, norms, invs) =
                 (&depth[start..stop], &c.xs[start..stop], &norms[start..stop], &invs[start..stop]);
+            b.len = stop - start;
             // Every column, valid or not (the invalid ones' values go unused): no branch.
             // `rotation * unit` as nalgebra sums it, column by column.
             for (k, ((&z, &x), (&norm, &inv))) in zs.iter().zip(xs).zip(norms.iter().zip(invs)).enumerate() {
                 let r = z as f64 * norm;
-                range[k] = r;
-                z_end[k] = (r * inv) as f32;
+                b.valid[k] = DepthImage::is_valid(z);
+                b.plain[k] = b.valid[k] & (r <= max_range);
+                b.z_end[k] = (r * inv) as f32;
                 let unit = [x * inv, y * inv, inv];
-                for (a, e) in end.iter_mut().enumerate() {
+                for (a, key) in b.key.iter_mut().enumerate() {
                     let d = rotation[(a, 0)] * unit[0] + rotation[(a, 1)] * unit[1] + rotation[(a, 2)] * unit[2];
-                    e[k] = (origin[a] + r * d) * scale;
+                    key[k] = floor_i32_lanes((origin[a] + r * d) * scale);
                 }
             }
-            for (k, &z) in zs.iter().enumerate() {
-                if !DepthImage::is_valid(z) {
-                    continue;
-                }
-                let plain = range[k] <= max_range;
-                visit(start + k, plain.then(|| (z_end[k], [end[0][k], end[1][k], end[2][k]])));
-            }
+            visit(start, &b);
         }
         true
     }
@@ -747,12 +759,14 @@ mod tests {
         assert_eq!(cached.ray(64, 0), None, "outside the image");
     }
 
-    /// `row_plain` visits a row's valid pixels in order, and its plain values are those of
-    /// the pixels' rays bit for bit: over chunk boundaries (a 150-pixel row), invalid depths,
-    /// readings beyond the max range and several poses.
+    /// `row_plain` gives a row's pixels in order, says which are valid and which plain as
+    /// their rays do, and its plain values are those of the rays bit for bit: over block
+    /// boundaries (a 150-pixel row), invalid depths, readings beyond the max range and several
+    /// poses.
     #[test]
     fn plain_rows_are_their_rays_bit_for_bit() {
         use crate::frames::{DepthImage, look_at};
+        use crate::map::floor_i32;
         let mut rng = crate::random::Rng::new(3);
         let camera = Camera::new(130.0, -131.5, 74.5, 19.5, 150, 40, 5000.0).unwrap();
         let (mut plain_seen, mut others) = (0, 0);
@@ -778,17 +792,24 @@ mod tests {
             assert!(!FrameRays::new(&frame).row_plain(0, max_range, scale, |_, _| ()), "no cached camera rays");
             for v in 0..40 {
                 let mut visited = Vec::new();
-                assert!(rays.row_plain(v, max_range, scale, |u, plain| visited.push((u, plain))));
-                let want: Vec<PixelRay> = rays.row(v).collect();
-                assert_eq!(visited.len(), want.len(), "row {v}");
-                for ((u, plain), ray) in visited.into_iter().zip(want) {
-                    assert_eq!(u, ray.u as usize);
+                assert!(rays.row_plain(v, max_range, scale, |start, b| {
+                    for k in 0..b.len {
+                        let plain = b.plain[k].then(|| (b.z_end[k], [0, 1, 2].map(|a| b.key[a][k])));
+                        visited.push((start + k, b.valid[k], plain));
+                    }
+                }));
+                assert_eq!(visited.iter().map(|p| p.0).collect::<Vec<_>>(), (0..150).collect::<Vec<_>>(), "row {v}");
+                let mut rays_of_row = rays.row(v).peekable();
+                for (u, valid, plain) in visited {
+                    let ray = rays_of_row.next_if(|r| r.u as usize == u);
+                    assert_eq!(valid, ray.is_some(), "pixel {u}, {v}");
+                    let Some(ray) = ray else { continue };
                     match plain {
-                        Some((z, end)) => {
+                        Some((z, key)) => {
                             assert!(ray.range <= max_range);
                             assert_eq!(z.to_bits(), ((ray.range * ray.cz) as f32).to_bits());
-                            let q = [0, 1, 2].map(|a| ((ray.origin[a] + ray.range * ray.dir[a]) * scale).to_bits());
-                            assert_eq!(end.map(f64::to_bits), q, "pixel {u}, {v}");
+                            let q = [0, 1, 2].map(|a| floor_i32((ray.origin[a] + ray.range * ray.dir[a]) * scale));
+                            assert_eq!(key, q, "pixel {u}, {v}");
                             plain_seen += 1;
                         }
                         None => {
@@ -797,6 +818,7 @@ mod tests {
                         }
                     }
                 }
+                assert!(rays_of_row.next().is_none(), "row {v}");
             }
         }
         assert!(plain_seen > 10_000 && others > 1_000, "{plain_seen} plain, {others} beyond the max range");

@@ -707,12 +707,12 @@ macro_rules! split_voxels {
                     // (Inside a brick that `split_voxels` was called for, every box is dense.)
                     match self.judge(corners, true) {
                         (Seen::None, _) => {}
-                        (Seen::Some, Some(f)) => {
-                            if cube_meets(&child, surface) || self.box_crossed(&child, &f.rect, f.depths) {
+                        // (A seen box always has a footprint; without one, it is split untested.)
+                        (Seen::Some, f) => {
+                            if cube_meets(&child, surface) || f.is_none_or(|f| self.box_crossed(&child, &f.rect, f.depths)) {
                                 self.$name(child, surface, settled, mask)
                             }
                         }
-                        (Seen::Some, None) => unreachable!("a seen box has a footprint"),
                         (Seen::All, _) => {
                             for z in child.lo[2]..child.hi[2] {
                                 for y in child.lo[1]..child.hi[1] {

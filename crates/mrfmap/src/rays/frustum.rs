@@ -713,15 +713,7 @@ macro_rules! split_voxels {
                                 self.$name(child, surface, settled, mask)
                             }
                         }
-                        (Seen::All, _) => {
-                            for z in child.lo[2]..child.hi[2] {
-                                for y in child.lo[1]..child.hi[1] {
-                                    for x in child.lo[0]..child.hi[0] {
-                                        mask_set(mask, VoxelKey([x, y, z]).slot());
-                                    }
-                                }
-                            }
-                        }
+                        (Seen::All, _) => cube_set(&child, mask),
                     }
                 }
             }
@@ -757,6 +749,13 @@ fn cube_layers(b: &Box3) -> (u64, std::ops::Range<usize>) {
 fn cube_meets(b: &Box3, mask: &SlotMask) -> bool {
     let (bits, layers) = cube_layers(b);
     mask[layers].iter().any(|w| w & bits != 0)
+}
+
+/// Sets every voxel of `b`, a cube inside one brick, in `mask`.
+#[inline(always)]
+fn cube_set(b: &Box3, mask: &mut SlotMask) {
+    let (bits, layers) = cube_layers(b);
+    mask[layers].iter_mut().for_each(|w| *w |= bits);
 }
 
 /// Whether every voxel of `b`, a cube inside one brick, is in `mask`.
@@ -812,6 +811,13 @@ impl AboveEnds {
     fn get(&self, u: usize) -> Option<[i32; 3]> {
         self.has[u].then(|| self.key.each_ref().map(|k| k[u]))
     }
+
+    fn set(&mut self, u: usize, key: [i32; 3]) {
+        for (k, x) in self.key.iter_mut().zip(key) {
+            k[u] = x;
+        }
+        self.has[u] = true;
+    }
 }
 
 /// Adds to `ends` the voxel holding the segment end at `q` (voxel units) of column `u`,
@@ -839,10 +845,7 @@ fn note_end(
         ends.push(VoxelKey(key));
     }
     *last = Some((key, key.map(|k| k as f64)));
-    for (a, k) in above.key.iter_mut().enumerate() {
-        k[u] = key[a];
-    }
-    above.has[u] = true;
+    above.set(u, key);
 }
 
 /// [`note_end`] for the plain pixels of a block of a row from column `start` (the others
@@ -1765,7 +1768,7 @@ pub(super) mod tests {
         assert!(empty > 1000 && entered > 1000, "{empty} cubes not entered, {entered} entered");
     }
 
-    /// [`cube_meets`] and [`cube_within`] against the voxels one by one.
+    /// [`cube_meets`], [`cube_within`] and [`cube_set`] against the voxels one by one.
     #[test]
     fn cube_masks_are_their_voxels() {
         let mut rng = Rng::new(3);
@@ -1783,6 +1786,17 @@ pub(super) mod tests {
                 .collect();
             assert_eq!(cube_meets(&b, &mask), slots.iter().any(|s| *s), "{b:?}");
             assert_eq!(cube_within(&b, &mask), slots.iter().all(|s| *s), "{b:?}");
+            let mut set = mask;
+            cube_set(&b, &mut set);
+            let mut each = mask;
+            for z in lo[2]..b.hi[2] {
+                for y in lo[1]..b.hi[1] {
+                    for x in lo[0]..b.hi[0] {
+                        mask_set(&mut each, VoxelKey([x, y, z]).slot());
+                    }
+                }
+            }
+            assert_eq!(set, each, "{b:?}");
         }
     }
 

@@ -1288,7 +1288,7 @@ impl<'a> View<'a> {
     /// least parts and of the greatest. The lanes' values are within a relative 2^-23 of
     /// those depths (an f32 reciprocal and an f32 product), so the bounds are widened by a
     /// relative 1e-5 first.
-    #[inline]
+    #[inline(always)] // (into the copies of `split_voxels!`, as `box_crossed`)
     fn block_misses(&self, bu: usize, bv: usize, bounds: &Bounds, lo: &[f32; 3], hi: &[f32; 3]) -> bool {
         let (mut t0, mut t1) = (0.0f64, f64::INFINITY);
         let rows = &self.row_block_dirs[bv];
@@ -1331,43 +1331,40 @@ impl<'a> View<'a> {
         let r = self.resolution;
         let lo: [f32; 3] = std::array::from_fn(|a| (b.lo[a] as f64 * r - self.origin[a]) as f32);
         let hi: [f32; 3] = std::array::from_fn(|a| (b.hi[a] as f64 * r - self.origin[a]) as f32);
-        let crosses = |u: usize, v: usize| {
-            slabs_cross(&[self.seg.pixel(v * self.seg.width + u)], &self.inv_dirs(u, v), &lo, &hi)[0]
-        };
         // Most undecided voxels hold a surface, and the ray through the middle of their image
         // ends inside them: try it first.
         let c: [f64; 3] = std::array::from_fn(|k| {
             self.base[k] + (0..3).map(|a| (b.lo[a] + b.hi[a]) as f64 * 0.5 * self.step[a][k]).sum::<f64>()
         });
+        let (seg, width) = (self.seg, self.seg.width);
         if c[2] > 0.0 {
             // The nearest pixel centre, clamped to the footprint: a truncating cast of
             // `x + 1/2`, non-negative (`round` is a libm call on baseline x86-64, 1% of a frame;
             // a cast to `u32` is a few instructions where one to `usize` is a dozen).
             let inv_z = 1.0 / c[2];
             let nearest = |x: f64, lo: usize| ((x + 0.5).max(0.0) as u32 as usize).max(lo);
-            let (u, v) = (
-                nearest(self.fx * c[0] * inv_z + self.cx, rect.u0),
-                nearest(self.fy * c[1] * inv_z + self.cy, rect.v0),
-            );
-            if crosses(u.min(rect.u1), v.min(rect.v1)) {
+            let u = nearest(self.fx * c[0] * inv_z + self.cx, rect.u0).min(rect.u1);
+            let v = nearest(self.fy * c[1] * inv_z + self.cy, rect.v0).min(rect.v1);
+            if slabs_cross(&[seg.pixel(v * width + u)], &self.inv_dirs(u, v), &lo, &hi)[0] {
                 return true;
             }
         }
-        // Then every pixel, skipping blocks of pixels whose segments all miss the voxel's depths.
-        let (k, blocks) = (BLOCK.trailing_zeros() as usize, &self.seg.levels[0]);
-        let (seg, width) = (self.seg, self.seg.width);
-        (rect.v0 >> k..(rect.v1 >> k) + 1).any(|bv| {
-            (rect.u0 >> k..(rect.u1 >> k) + 1).any(|bu| {
+        // Then every pixel, skipping blocks of pixels whose segments all miss the voxel's
+        // depths. (Plain loops, not iterator adaptors: those compiled to functions of their
+        // own, outside the AVX2 copy this is inlined into.)
+        let (k, blocks) = (BLOCK.trailing_zeros() as usize, &seg.levels[0]);
+        for bv in rect.v0 >> k..(rect.v1 >> k) + 1 {
+            for bu in rect.u0 >> k..(rect.u1 >> k) + 1 {
                 let cell = &blocks.cells[bv * blocks.width + bu];
                 if cell.miss(z_near, z_far) || self.block_misses(bu, bv, cell, &lo, &hi) {
-                    return false;
+                    continue;
                 }
                 let (v0, v1) = ((bv << k).max(rect.v0), ((bv + 1) << k).min(rect.v1 + 1));
                 let (u0, u1) = ((bu << k).max(rect.u0), ((bu + 1) << k).min(rect.u1 + 1));
                 // A block's row of pixels at once, in lanes: each pixel's depths first (two
                 // compares where the slab test is a dozen operations, and most pixels here end
                 // in front of the voxel), then the slab tests of those left, side by side.
-                (v0..v1).any(|v| {
+                for v in v0..v1 {
                     let lanes: [PixelDepths; BLOCK] = std::array::from_fn(|j| {
                         match u0 + j < u1 {
                             true => Some(seg.pixel(v * width + u0 + j)).filter(|p| !p.miss(z_near, z_far)),
@@ -1375,11 +1372,15 @@ impl<'a> View<'a> {
                         }
                         .unwrap_or(PixelDepths::NONE)
                     });
-                    lanes.iter().any(|p| p.0[0] <= p.0[1])
+                    if lanes.iter().any(|p| p.0[0] <= p.0[1])
                         && slabs_cross(&lanes, &self.inv_dirs(u0, v), &lo, &hi).contains(&true)
-                })
-            })
-        })
+                    {
+                        return true;
+                    }
+                }
+            }
+        }
+        false
     }
 }
 

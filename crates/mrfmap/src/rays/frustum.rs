@@ -599,15 +599,13 @@ macro_rules! segments_row {
             let v = v as u32;
             let plain = limits.bounds.is_none() && {
                 let (row_ends, mut last_key) = (&mut *pixels.ends, None);
-                if CUT {
-                    rays.row_cut(v, limits, resolution, row_ends);
-                }
-                rays.row_plain(v, max_range, inv_r, |start, b| {
-                    for k in 0..b.len {
-                        if b.plain[k] {
-                            row_ends[start + k] = b.z_end[k];
-                        } else if !CUT && b.valid[k] {
-                            // (Cut by the max range: no surface. With `CUT`, set by `row_cut`.)
+                let plain = rays.row_plain(v, max_range, inv_r, |start, b| {
+                    // (The other pixels' ends are -inf, no segment: a copy where a branch per
+                    // pixel was a sixth of a long sequence's row filling.)
+                    row_ends[start..start + b.len].copy_from_slice(&b.z_end[..b.len]);
+                    if !CUT && b.valid[..b.len] != b.plain[..b.len] {
+                        // (Cut by the max range: no surface. With `CUT`, set by `row_cut`.)
+                        for k in (0..b.len).filter(|k| b.valid[*k] & !b.plain[*k]) {
                             let ray = rays.ray((start + k) as u32, v);
                             if let Some((depths, _)) = ray.as_ref().and_then(segment) {
                                 row_ends[start + k] = depths.0[1];
@@ -615,7 +613,11 @@ macro_rules! segments_row {
                         }
                     }
                     note_ends(start, b, &mut last_key, above, ends);
-                })
+                });
+                if CUT {
+                    rays.row_cut(v, limits, resolution, row_ends);
+                }
+                plain
             };
             if !plain {
                 let mut last = None;
@@ -647,7 +649,8 @@ segments_row!(
 
 /// Defines under `$name` the splitting of an undecided box inside one brick down to voxels,
 /// setting the crossed ones in `mask`: those in `surface` (the brick's measured surfaces) as
-/// they are, those in `settled` not at all (see [`Projector::crossed_voxels`]), the others by
+/// they are, those in `settled` not at all (see [`Projector::crossed_voxels`]; a half made of
+/// such voxels and surfaces is not judged), the others by
 /// the exact test ([`View::box_crossed`]). A box's eight halves are judged together, unless
 /// they are voxels: their corners are 27 points, not 64. A half the pyramid leaves undecided
 /// and that holds no surface gets the exact test as a whole before it is split: behind a
@@ -664,6 +667,7 @@ macro_rules! split_voxels {
             $(#[$attr])*
             fn $name(&self, b: Box3, surface: &SlotMask, settled: &SlotMask, mask: &mut SlotMask) {
                 let half = (b.hi[0] - b.lo[0]) / 2;
+                let settled_or_surface: SlotMask = std::array::from_fn(|w| settled[w] | surface[w]);
                 let origin = self.corner_at(b.lo);
                 let step = self.step.map(|s| s.map(|c| c * half as f64));
                 // Corner (i, j, k) of the 3 x 3 x 3 lattice is `lattice[i + 3 j + 9 k]` (nested loops:
@@ -701,7 +705,9 @@ macro_rules! split_voxels {
                         continue;
                     }
                     let child = Box3 { lo, hi: lo.map(|x| x + half) };
-                    if cube_within(&child, settled) {
+                    // (A cube of open voxels and surfaces needs no test: its surfaces are set.)
+                    if cube_within(&child, &settled_or_surface) {
+                        cube_set(&child, surface, mask);
                         continue;
                     }
                     // (Inside a brick that `split_voxels` was called for, every box is dense.)
@@ -713,7 +719,7 @@ macro_rules! split_voxels {
                                 self.$name(child, surface, settled, mask)
                             }
                         }
-                        (Seen::All, _) => cube_set(&child, mask),
+                        (Seen::All, _) => cube_set(&child, &[u64::MAX; 8], mask),
                     }
                 }
             }
@@ -751,11 +757,11 @@ fn cube_meets(b: &Box3, mask: &SlotMask) -> bool {
     mask[layers].iter().any(|w| w & bits != 0)
 }
 
-/// Sets every voxel of `b`, a cube inside one brick, in `mask`.
+/// Sets the voxels of `b`, a cube inside one brick, that are in `of`, in `mask`.
 #[inline(always)]
-fn cube_set(b: &Box3, mask: &mut SlotMask) {
+fn cube_set(b: &Box3, of: &SlotMask, mask: &mut SlotMask) {
     let (bits, layers) = cube_layers(b);
-    mask[layers].iter_mut().for_each(|w| *w |= bits);
+    mask[layers.clone()].iter_mut().zip(&of[layers]).for_each(|(w, o)| *w |= bits & o);
 }
 
 /// Whether every voxel of `b`, a cube inside one brick, is in `mask`.
@@ -1787,17 +1793,24 @@ pub(super) mod tests {
                 .collect();
             assert_eq!(cube_meets(&b, &mask), slots.iter().any(|s| *s), "{b:?}");
             assert_eq!(cube_within(&b, &mask), slots.iter().all(|s| *s), "{b:?}");
-            let mut set = mask;
-            cube_set(&b, &mut set);
-            let mut each = mask;
-            for z in lo[2]..b.hi[2] {
-                for y in lo[1]..b.hi[1] {
-                    for x in lo[0]..b.hi[0] {
-                        mask_set(&mut each, VoxelKey([x, y, z]).slot());
+            // Setting the cube's voxels of `of` (all, or a random half) in another mask.
+            let half: SlotMask = std::array::from_fn(|w| mask[w].rotate_left(17 + w as u32));
+            for of in [[u64::MAX; 8], half] {
+                let other: SlotMask = std::array::from_fn(|w| mask[w].rotate_left(5));
+                let (mut set, mut each) = (other, other);
+                cube_set(&b, &of, &mut set);
+                for z in lo[2]..b.hi[2] {
+                    for y in lo[1]..b.hi[1] {
+                        for x in lo[0]..b.hi[0] {
+                            let slot = VoxelKey([x, y, z]).slot();
+                            if mask_has(&of, slot) {
+                                mask_set(&mut each, slot);
+                            }
+                        }
                     }
                 }
+                assert_eq!(set, each, "{b:?}");
             }
-            assert_eq!(set, each, "{b:?}");
         }
     }
 

@@ -228,8 +228,9 @@ pub(crate) const PLAIN_COLUMNS: usize = 64;
 
 /// [`PLAIN_COLUMNS`] pixels of a row (fewer at its end), as [`FrameRays::row_plain`] gives
 /// them: per column whether its depth is valid, whether it is plain (valid and within the max
-/// range), and for the plain ones the surface's camera z-depth and the voxel key (per axis)
-/// of its point multiplied by the scale. The other columns' values are meaningless.
+/// range), the surface's camera z-depth (`-inf` unless plain), and for the plain ones the
+/// voxel key (per axis) of its point multiplied by the scale. The other columns' keys are
+/// meaningless.
 pub(crate) struct PlainBlock {
     pub len: usize,
     pub valid: [bool; PLAIN_COLUMNS],
@@ -275,7 +276,7 @@ impl FrameRays<'_> {
                 let r = z as f64 * norm;
                 b.valid[k] = DepthImage::is_valid(z);
                 b.plain[k] = b.valid[k] & (r <= max_range);
-                b.z_end[k] = (r * inv) as f32;
+                b.z_end[k] = if b.plain[k] { (r * inv) as f32 } else { f32::NEG_INFINITY };
                 let unit = [x * inv, y * inv, inv];
                 for (a, key) in b.key.iter_mut().enumerate() {
                     let d = rotation[(a, 0)] * unit[0] + rotation[(a, 1)] * unit[1] + rotation[(a, 2)] * unit[2];
@@ -299,7 +300,18 @@ impl FrameRays<'_> {
     /// a row: [`FrameRays::row_cut`] is not needed for rows where this is false.
     pub(crate) fn row_may_cut(&self, v: u32, max_range: f64) -> bool {
         let Some(c) = self.camera_rays else { return false };
-        let deepest = self.frame.depth.row(v).iter().fold(0.0f32, |m, &z| m.max(z));
+        // Eight running maxima side by side, by comparisons, not `f32::max` (whose NaN handling
+        // and one running maximum kept this scan out of lanes): the same value, as a NaN never
+        // compares greater.
+        let greater = |m: f32, z: f32| if z > m { z } else { m };
+        let row = self.frame.depth.row(v);
+        let mut lanes = [0.0f32; 8];
+        for chunk in row.chunks_exact(8) {
+            for (m, &z) in lanes.iter_mut().zip(chunk) {
+                *m = greater(*m, z);
+            }
+        }
+        let deepest = lanes.into_iter().chain(row.chunks_exact(8).remainder().iter().copied()).fold(0.0, greater);
         let y = c.ys[v as usize];
         let (first, last) = (c.xs.first().copied().unwrap_or(0.0), c.xs.last().copied().unwrap_or(0.0));
         let longest = (first.abs().max(last.abs()).powi(2) + y * y + 1.0).sqrt();

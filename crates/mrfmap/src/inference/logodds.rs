@@ -219,6 +219,23 @@ impl LogOddsEngine {
         *l = (*l + delta).clamp(min, max);
     }
 
+    /// [`Engine::integrate`]'s work: the frame's voxels by projection (or its rays walked,
+    /// where projecting does not pay), marked and applied.
+    fn integrate_frame(&mut self, frame: &Frame) {
+        match (self.params.model, self.params.marking) {
+            (SensorModel::HitMiss { .. }, Marking::Project) if Projector::pays_off(frame, self.grid.resolution()) => {
+                let crossed = self.project(frame, true);
+                self.apply_marks(ScanMarks::of_crossed(crossed));
+            }
+            (SensorModel::HitMiss { .. }, Marking::Centres) => {
+                let r = self.grid.resolution();
+                let crossed = self.projector.centre_voxels(frame, &self.limits, r, self.params.keep.as_ref());
+                self.apply_marks(ScanMarks::of_crossed(crossed));
+            }
+            _ => self.integrate_rays(&Rays::of_frame(frame)),
+        }
+    }
+
     /// The voxels `frame`'s rays cross, by projection; with `leave_open`, whether the voxels
     /// at the lower clamp are crossed is left open where a miss lowers the log-odds.
     ///
@@ -319,17 +336,15 @@ impl Engine for LogOddsEngine {
     }
 
     fn integrate(&mut self, frame: &Frame) -> Result<()> {
-        match (self.params.model, self.params.marking) {
-            (SensorModel::HitMiss { .. }, Marking::Project) if Projector::pays_off(frame, self.grid.resolution()) => {
-                let crossed = self.project(frame, true);
-                self.apply_marks(ScanMarks::of_crossed(crossed));
-            }
-            (SensorModel::HitMiss { .. }, Marking::Centres) => {
-                let r = self.grid.resolution();
-                let crossed = self.projector.centre_voxels(frame, &self.limits, r, self.params.keep.as_ref());
-                self.apply_marks(ScanMarks::of_crossed(crossed));
-            }
-            _ => self.integrate_rays(&Rays::of_frame(frame)),
+        // With one thread, on the pool's worker: the frame's dozen parallel steps then run
+        // where they start instead of each being handed from this thread to the worker and
+        // back (0.88x the time of a 211-frame build at 0.05 m). With more, each step wakes
+        // the pool either way, and starting them on a worker was slower (BENCHMARKS.md,
+        // session 40).
+        if rayon::current_num_threads() == 1 {
+            rayon::scope(|_| self.integrate_frame(frame));
+        } else {
+            self.integrate_frame(frame);
         }
         Ok(())
     }

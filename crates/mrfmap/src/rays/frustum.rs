@@ -1273,11 +1273,14 @@ impl<'a> View<'a> {
     /// simulated scene) lost 60 voxels the walk keeps.
     #[inline(always)]
     fn inv_dirs<const N: usize>(&self, u: usize, v: usize) -> [[f32; N]; 3] {
-        let row = self.row_dirs[v];
-        std::array::from_fn(|a| {
-            let cols = &self.col_dirs[a][u..u + N];
-            std::array::from_fn(|j| (1.0 / (cols[j] + row[a])) as f32)
-        })
+        // (Loops, not `array::from_fn`, which may stay a baseline function of its own.)
+        let (row, mut inv) = (self.row_dirs[v], [[0.0; N]; 3]);
+        for (a, inv) in inv.iter_mut().enumerate() {
+            for (i, c) in inv.iter_mut().zip(&self.col_dirs[a][u..u + N]) {
+                *i = (1.0 / (c + row[a])) as f32;
+            }
+        }
+        inv
     }
 
     /// Whether no pixel of block `(bu, bv)` of the pyramid's first level, whose segments lie
@@ -1371,13 +1374,13 @@ impl<'a> View<'a> {
                 // compares where the slab test is a dozen operations, and most pixels here end
                 // in front of the voxel), then the slab tests of those left, side by side.
                 for v in v0..v1 {
-                    let lanes: [PixelDepths; BLOCK] = std::array::from_fn(|j| {
-                        match u0 + j < u1 {
-                            true => Some(seg.pixel(v * width + u0 + j)).filter(|p| !p.miss(z_near, z_far)),
-                            false => None,
+                    let mut lanes = [PixelDepths::NONE; BLOCK];
+                    for (j, lane) in lanes[..u1 - u0].iter_mut().enumerate() {
+                        let p = seg.pixel(v * width + u0 + j);
+                        if !p.miss(z_near, z_far) {
+                            *lane = p;
                         }
-                        .unwrap_or(PixelDepths::NONE)
-                    });
+                    }
                     if lanes.iter().any(|p| p.0[0] <= p.0[1])
                         && slabs_cross(&lanes, &self.inv_dirs(u0, v), &lo, &hi).contains(&true)
                     {

@@ -139,9 +139,15 @@ fn main() {
         // (Before any thread is started: a thread takes its arena at its first allocation.)
         let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
         limit_malloc_arenas(cli.threads.map_or(cores, |n| n as usize));
-        if let Some(n) = cli.threads {
-            rayon::ThreadPoolBuilder::new().num_threads(n as usize).build_global()?;
-        }
+        // This thread is one of the pool's (the rest are started for it): a command's parallel
+        // steps then start where they are called, and each of a frame's dozen steps wakes one
+        // other thread instead of handing itself to the pool while this one sleeps (two
+        // threads: 0.92-0.97x the integration time of a log-odds build, one thread 0.89-0.99x;
+        // BENCHMARKS.md, session 40). What this thread waits on outside rayon (the frame read
+        // ahead, a bag's reading threads) never needs the pool to finish. (0 threads: rayon's
+        // default, RAYON_NUM_THREADS or one per core.)
+        let threads = cli.threads.map_or(0, |n| n as usize);
+        rayon::ThreadPoolBuilder::new().num_threads(threads).use_current_thread().build_global()?;
         match cli.command {
             Command::Build(a) => commands::build::run(a),
             #[cfg(feature = "bags")]

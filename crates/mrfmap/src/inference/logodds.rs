@@ -337,10 +337,11 @@ impl Engine for LogOddsEngine {
 
     fn integrate(&mut self, frame: &Frame) -> Result<()> {
         // With one thread, on the pool's worker: the frame's dozen parallel steps then run
-        // where they start instead of each being handed from this thread to the worker and
-        // back (0.88x the time of a 211-frame build at 0.05 m). With more, each step wakes
-        // the pool either way, and starting them on a worker was slower (BENCHMARKS.md,
-        // session 40).
+        // where they start instead of each being handed from a caller outside the pool to the
+        // worker and back (0.83x the time of a 211-frame build at 0.05 m, measured before the
+        // command line's own thread joined its pool, where this now runs in place; a library
+        // caller's thread is outside). With more threads, each step wakes the pool either
+        // way, and starting them on a worker was slower (BENCHMARKS.md, session 40).
         if rayon::current_num_threads() == 1 {
             rayon::scope(|_| self.integrate_frame(frame));
         } else {

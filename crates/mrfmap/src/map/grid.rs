@@ -331,7 +331,11 @@ impl<V: Copy + Default> Brick<V> {
             }
             self.mask[w] |= want;
             if all == u64::MAX {
-                layer.iter_mut().for_each(&mut update);
+                // (A `for` loop: `for_each(&mut update)` called the update through the
+                // reference, per voxel, not inlined.)
+                for v in layer.iter_mut() {
+                    update(v);
+                }
                 all = 0;
             }
             while all != 0 {

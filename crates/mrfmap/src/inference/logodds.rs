@@ -338,10 +338,11 @@ impl Engine for LogOddsEngine {
     fn integrate(&mut self, frame: &Frame) -> Result<()> {
         // With one thread, on the pool's worker: the frame's dozen parallel steps then run
         // where they start instead of each being handed from a caller outside the pool to the
-        // worker and back (0.83x the time of a 211-frame build at 0.05 m, measured before the
-        // command line's own thread joined its pool, where this now runs in place; a library
-        // caller's thread is outside). With more threads, each step wakes the pool either
-        // way, and starting them on a worker was slower (BENCHMARKS.md, session 40).
+        // worker and back (0.83x the time of a 211-frame build at 0.05 m). It still pays with
+        // the command line's thread in its pool (without it, 1.05x the time of that build's
+        // frames under `mrfmap bench`), and a library caller's thread is outside the pool.
+        // With more threads, each step wakes the pool either way, and starting them on a
+        // worker was slower (BENCHMARKS.md, session 40).
         if rayon::current_num_threads() == 1 {
             rayon::scope(|_| self.integrate_frame(frame));
         } else {

@@ -245,8 +245,8 @@ impl FrameRays<'_> {
     /// the other valid ones' rays are [`FrameRays::ray`]. Each block is computed in loops the
     /// compiler vectorises, the same values bit for bit as from the pixels' rays (`range *
     /// cz`, and [`crate::map::floor_i32`] of `(origin + range dir) scale`, computed by
-    /// [`floor_i32_lanes`], without fused operations). Does nothing and returns false without cached camera rays
-    /// ([`FrameRays::with_camera_rays`]).
+    /// [`floor_i32_lanes`], without fused operations). Does nothing and returns false without
+    /// cached camera rays ([`FrameRays::with_camera_rays`]).
     #[inline(always)]
     pub(crate) fn row_plain(
         &self,

@@ -184,6 +184,7 @@ impl<'a> FrameRays<'a> {
 
     /// The ray of pixel `(u, v)`, `None` if its depth is not valid (zero, negative or not
     /// finite) or the pixel is outside the image.
+    #[inline(always)] // (into the AVX2 copy of a brick's walk, with `for_each_crossing`: 0.94x)
     pub fn ray(&self, u: u32, v: u32) -> Option<PixelRay> {
         let depth = &self.frame.depth;
         if u >= depth.width() || v >= depth.height() {

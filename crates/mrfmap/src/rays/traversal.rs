@@ -55,7 +55,9 @@ impl Crossing {
 /// });
 /// assert_eq!(keys, vec![[0, 0, 0], [1, 0, 0], [2, 0, 0]]);
 /// ```
-#[inline]
+// Inlined for the walk's setup (its divisions and `floor`s), which then runs in the caller's
+// copy; `Walk::crossings` stays a call: inlined into a brick's AVX2 walk it took 1.05x the time.
+#[inline(always)]
 pub fn for_each_crossing(
     origin: [f64; 3],
     dir: [f64; 3],

@@ -154,10 +154,25 @@ impl Projector {
         view.split_bricks(root, &mut crossed, &mut undecided);
         // The surfaces' voxels by brick: an undecided voxel among them needs no exact test, as
         // a voxel both crossed and a surface in one frame counts as a surface.
-        let mut ends_by_brick: FxHashMap<BrickKey, SlotMask> = FxHashMap::default();
-        for key in ends {
-            mask_set(ends_by_brick.entry(key.brick()).or_default(), key.slot());
-        }
+        // (Gathered on the pool's threads, a map per task, then merged: a frame has about five
+        // times as many ends as surface voxels, 131 k on coffin-world at 0.05 m, and serially,
+        // after copying them into one list, this took 0.93x the time of a frame there.)
+        let ends_by_brick: FxHashMap<BrickKey, SlotMask> = ends
+            .par_iter()
+            .fold(FxHashMap::default, |mut by_brick: FxHashMap<BrickKey, SlotMask>, rows| {
+                for key in rows {
+                    mask_set(by_brick.entry(key.brick()).or_default(), key.slot());
+                }
+                by_brick
+            })
+            .reduce(FxHashMap::default, |a, b| {
+                let (mut big, small) = if a.len() >= b.len() { (a, b) } else { (b, a) };
+                for (key, m) in small {
+                    let all = big.entry(key).or_default();
+                    (0..8).for_each(|w| all[w] |= m[w]);
+                }
+                big
+            });
         crossed.par_extend(undecided.into_par_iter().filter_map(|(brick, footprint)| {
             let mut mask = [0u64; 8];
             let surface = ends_by_brick.get(&brick).copied().unwrap_or_default();
@@ -357,8 +372,8 @@ impl Bounds {
 
 impl Segments {
     /// Fills the buffers for `frame`; returns the voxels of the segment ends that are
-    /// measured surfaces. Each row runs in [`segments_row_avx2`] on a processor with AVX2.
-    fn fill(&mut self, rays: &FrameRays, limits: &RayLimits, resolution: f64) -> Vec<VoxelKey> {
+    /// measured surfaces, a list per block of rows ([`Segments::fill_with`]). Each row runs in [`segments_row_avx2`] on a processor with AVX2.
+    fn fill(&mut self, rays: &FrameRays, limits: &RayLimits, resolution: f64) -> Vec<Vec<VoxelKey>> {
         #[cfg(target_arch = "x86_64")]
         let avx2 = std::is_x86_feature_detected!("avx2");
         self.fill_with(rays.size(), limits.bounds.is_some(), |v, pixels, ends, above| {
@@ -384,8 +399,10 @@ impl Segments {
     /// `fill_row(v, pixels, ends, above)`: it sets the segments of the row's `pixels` (which
     /// start with none; with `starts` false every segment it sets must start at 0) and adds
     /// the voxels of their surface ends to `ends` with [`note_ends`] or [`note_end`] (`above`
-    /// holds the row above's, kept from row to row by each task). Returns the ends.
-    fn fill_with<F>(&mut self, (width, height): (usize, usize), starts: bool, fill_row: F) -> Vec<VoxelKey>
+    /// holds the row above's, kept from row to row by each task). Returns the ends, a list per
+    /// block of [`BLOCK`] rows in order (each block's task makes one: gathering them needs no
+    /// copy into one list).
+    fn fill_with<F>(&mut self, (width, height): (usize, usize), starts: bool, fill_row: F) -> Vec<Vec<VoxelKey>>
     where
         F: Fn(usize, PixelRow<'_>, &mut Vec<VoxelKey>, &mut AboveEnds) + Sync,
     {
@@ -411,7 +428,7 @@ impl Segments {
         // 2 x 2 blocks first (in a buffer of the task's), then the row of 4 x 4 ones.
         const { assert!(BLOCK == 4, "blocks are made from 2 x 2 ones in one step") };
         let half = width.div_ceil(2);
-        let rows: Vec<Vec<VoxelKey>> = self
+        let ends = self
             .ends
             .par_chunks_mut(BLOCK * width)
             .zip(start_chunks)
@@ -467,7 +484,6 @@ impl Segments {
                 },
             )
             .collect();
-        let ends = rows.concat();
         self.build_pyramid();
         ends
     }

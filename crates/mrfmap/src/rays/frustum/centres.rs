@@ -132,7 +132,7 @@ fn fill_centres(seg: &mut Segments, rays: &FrameRays, limits: &RayLimits) {
             [*start, *end] = if valid { d } else { PixelDepths::NONE.0 };
         }
     });
-    debug_assert!(ends.is_empty());
+    debug_assert!(ends.iter().all(Vec::is_empty));
 }
 
 /// The slots of `brick` inside the box of voxels `b`.

@@ -372,7 +372,8 @@ impl Bounds {
 
 impl Segments {
     /// Fills the buffers for `frame`; returns the voxels of the segment ends that are
-    /// measured surfaces, a list per block of rows ([`Segments::fill_with`]). Each row runs in [`segments_row_avx2`] on a processor with AVX2.
+    /// measured surfaces, a list per block of rows ([`Segments::fill_with`]). Each row runs
+    /// in [`segments_row_avx2`] on a processor with AVX2.
     fn fill(&mut self, rays: &FrameRays, limits: &RayLimits, resolution: f64) -> Vec<Vec<VoxelKey>> {
         #[cfg(target_arch = "x86_64")]
         let avx2 = std::is_x86_feature_detected!("avx2");

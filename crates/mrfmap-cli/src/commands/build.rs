@@ -251,7 +251,7 @@ pub fn run(a: Args) -> Result<()> {
     // Straight from the engine to the file: no finished map held beside the engine's state.
     let saved = report.engine.save_map(&a.output, &params)?;
     println!(
-        "{}: {} frames, {} voxels ({} occupied), {:.1} ms/frame",
+        "{}: {} frames, {} voxels ({} occupied), {:.2} ms/frame",
         a.output.display(),
         report.frames,
         saved.voxels,
@@ -343,7 +343,7 @@ fn build_tiled(a: &Args, edge: f64) -> Result<()> {
     index.save(&a.output)?;
     let (voxels, occupied): (u64, u64) = index.tiles.iter().fold((0, 0), |(v, o), t| (v + t.voxels, o + t.occupied));
     println!(
-        "{}: {} tiles, {} frames, {voxels} voxels ({occupied} occupied), {:.1} ms/frame",
+        "{}: {} tiles, {} frames, {voxels} voxels ({occupied} occupied), {:.2} ms/frame",
         a.output.display(),
         index.tiles.len(),
         indices.len(),

@@ -698,8 +698,8 @@ macro_rules! split_voxels {
                             continue;
                         }
                         if mask_has(surface, slot)
-                            || self.footprint(corners).is_some_and(|(rect, depths, _)| {
-                                self.box_crossed(&Box3 { lo, hi: lo.map(|x| x + 1) }, &rect, depths)
+                            || self.footprint(corners).is_some_and(|(rect, depths, _, centre)| {
+                                self.box_crossed(&Box3 { lo, hi: lo.map(|x| x + 1) }, &rect, depths, centre)
                             })
                         {
                             mask_set(mask, slot);
@@ -717,7 +717,7 @@ macro_rules! split_voxels {
                         (Seen::None, _) => {}
                         // (A seen box always has a footprint; without one, it is split untested.)
                         (Seen::Some, f) => {
-                            if cube_meets(&child, surface) || f.is_none_or(|f| self.box_crossed(&child, &f.rect, f.depths)) {
+                            if cube_meets(&child, surface) || f.is_none_or(|f| self.box_crossed(&child, &f.rect, f.depths, f.centre)) {
                                 self.$name(child, surface, settled, mask)
                             }
                         }
@@ -991,6 +991,11 @@ struct Corner {
     v: f64,
 }
 
+/// What [`View::footprint`] finds of a box: the rectangle of pixels that may see it, its
+/// camera-depth range, whether its image lies wholly inside the image, and the middle of its
+/// corners' image if it lies in front of the camera.
+type BoxImage = (Rect, (f32, f32), bool, Option<[f32; 2]>);
+
 /// Where a box appears in the image: the pixels that may see it.
 #[derive(Clone, Copy, Debug)]
 struct Footprint {
@@ -999,6 +1004,8 @@ struct Footprint {
     depths: (f32, f32),
     /// Near enough that every voxel's image holds a pixel centre.
     dense: bool,
+    /// The middle of the box's image, if it lies in front of the camera.
+    centre: Option<[f32; 2]>,
 }
 
 /// A box of voxels: keys `lo..hi` per axis (half-open).
@@ -1311,7 +1318,7 @@ impl<'a> View<'a> {
         corners: impl Iterator<Item = &'c Corner> + Clone,
         known_dense: bool,
     ) -> (Seen, Option<Footprint>) {
-        let Some((rect, depths @ (z_near, z_far), inside_image)) = self.footprint(corners.clone()) else {
+        let Some((rect, depths @ (z_near, z_far), inside_image, centre)) = self.footprint(corners.clone()) else {
             return (Seen::None, None);
         };
         let d = self.seg.bounds(&rect);
@@ -1322,16 +1329,16 @@ impl<'a> View<'a> {
         let through = d.start_max() <= z_near && d.end_min() >= z_far;
         let dense = known_dense || corners.map(|c| c.x * c.x + c.y * c.y + c.z * c.z).all(|d2| d2 <= self.dense_range2);
         let seen = if inside_image && through && dense { Seen::All } else { Seen::Some };
-        (seen, Some(Footprint { rect, depths, dense }))
+        (seen, Some(Footprint { rect, depths, dense, centre }))
     }
 
     /// The rectangle of pixels whose rays can meet the box with these eight corners, the
-    /// box's camera-depth range, and whether its image lies wholly inside the image; `None`
-    /// when no pixel can see it (behind the camera, outside the view frustum, or between
+    /// box's camera-depth range, whether its image lies wholly inside the image, and its
+    /// middle ([`BoxImage`]); `None` when no pixel can see it (behind the camera, outside the view frustum, or between
     /// pixel centres). (Inlined into its callers: as a call it was 8% of a projected frame,
     /// and inlined the frame took 0.97-0.98x the time.)
     #[inline(always)]
-    fn footprint<'c>(&self, corners: impl Iterator<Item = &'c Corner> + Clone) -> Option<(Rect, (f32, f32), bool)> {
+    fn footprint<'c>(&self, corners: impl Iterator<Item = &'c Corner> + Clone) -> Option<BoxImage> {
         let (mut z_near, mut z_far) = (f64::INFINITY, f64::NEG_INFINITY);
         let (mut u_min, mut u_max, mut v_min, mut v_max) =
             (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
@@ -1343,8 +1350,9 @@ impl<'a> View<'a> {
         if z_far <= 0.0 {
             return None; // behind the camera
         }
-        let mut inside_image = false;
+        let (mut inside_image, mut centre) = (false, None);
         if z_near > 0.0 {
+            centre = Some([((u_min + u_max) * 0.5) as f32, ((v_min + v_max) * 0.5) as f32]);
             // In front of the camera: the image of the box is where its corners project (it
             // misses the view frustum exactly when it holds no pixel centre, below).
             inside_image = u_min >= 0.0 && u_max <= self.u_last && v_min >= 0.0 && v_max <= self.v_last;
@@ -1357,7 +1365,7 @@ impl<'a> View<'a> {
             (u_min, u_max, v_min, v_max) = (0.0, self.u_last, 0.0, self.v_last);
         }
         let rect = Rect::of_pixel_centres((u_min, u_max), (v_min, v_max), self.u_last, self.v_last)?;
-        Some((rect, (z_near as f32, z_far as f32), inside_image))
+        Some((rect, (z_near as f32, z_far as f32), inside_image, centre))
     }
 
     /// Whether a box with these corners lies wholly outside one of the view frustum's side
@@ -1441,22 +1449,28 @@ impl<'a> View<'a> {
     /// (Only a pixel whose centre lies on the box's outline, where rounding may put it inside
     /// a voxel's footprint but outside the box's, could differ: a ray that grazes the box.)
     #[inline(always)] // (into both copies of `split_voxels!`: as a call it stayed a baseline one)
-    fn box_crossed(&self, b: &Box3, rect: &Rect, (z_near, z_far): (f32, f32)) -> bool {
+    fn box_crossed(&self, b: &Box3, rect: &Rect, (z_near, z_far): (f32, f32), centre: Option<[f32; 2]>) -> bool {
         let (lo, hi) = self.relative(b);
         // Most undecided voxels hold a surface, and the ray through the middle of their image
-        // ends inside them: try it first.
-        let c: [f64; 3] = std::array::from_fn(|k| {
-            self.base[k] + (0..3).map(|a| (b.lo[a] + b.hi[a]) as f64 * 0.5 * self.step[a][k]).sum::<f64>()
-        });
+        // ends inside them: try it first. (In front of the camera, the middle of the box's
+        // corners' image, which `footprint` found without a division of its own; a box
+        // reaching behind the camera plane has its centre projected.)
         let (seg, width) = (self.seg, self.seg.width);
-        if c[2] > 0.0 {
+        let centre = centre.or_else(|| {
+            let c: [f64; 3] = std::array::from_fn(|k| {
+                self.base[k] + (0..3).map(|a| (b.lo[a] + b.hi[a]) as f64 * 0.5 * self.step[a][k]).sum::<f64>()
+            });
+            (c[2] > 0.0).then(|| {
+                let inv_z = 1.0 / c[2];
+                [(self.fx * c[0] * inv_z + self.cx) as f32, (self.fy * c[1] * inv_z + self.cy) as f32]
+            })
+        });
+        if let Some([cu, cv]) = centre {
             // The nearest pixel centre, clamped to the footprint: a truncating cast of
             // `x + 1/2`, non-negative (`round` is a libm call on baseline x86-64, 1% of a frame;
             // a cast to `u32` is a few instructions where one to `usize` is a dozen).
-            let inv_z = 1.0 / c[2];
-            let nearest = |x: f64, lo: usize| ((x + 0.5).max(0.0) as u32 as usize).max(lo);
-            let u = nearest(self.fx * c[0] * inv_z + self.cx, rect.u0).min(rect.u1);
-            let v = nearest(self.fy * c[1] * inv_z + self.cy, rect.v0).min(rect.v1);
+            let nearest = |x: f32, lo: usize| ((x + 0.5).max(0.0) as u32 as usize).max(lo);
+            let (u, v) = (nearest(cu, rect.u0).min(rect.u1), nearest(cv, rect.v0).min(rect.v1));
             if slabs_cross(&[seg.pixel(v * width + u)], &self.inv_dirs(u, v), &lo, &hi)[0] {
                 return true;
             }
@@ -1923,7 +1937,7 @@ pub(super) mod tests {
             with_undecided(rays, limits, r, |view, undecided| {
                 let exact = |b: &Box3| {
                     view.footprint(view.corners(b).iter())
-                        .is_some_and(|(rect, depths, _)| view.box_crossed(b, &rect, depths))
+                        .is_some_and(|(rect, depths, _, centre)| view.box_crossed(b, &rect, depths, centre))
                 };
                 for (brick, _) in undecided {
                     let base = Box3::of_brick(brick).lo;

@@ -1,7 +1,8 @@
-//! Reading the next frame while the engine integrates this one: decoding a 640 x 480 PNG
-//! depth image takes about a fifth of the time a log-odds frame at 0.05 m takes to integrate,
-//! and with a second core the engine leaves that core idle between its parallel parts (a
-//! build of icl-livingroom1 on two threads: 0.71x the time, BENCHMARKS.md session 31).
+//! Reading the next frame while the engine integrates this one: reading and decoding a 640 x
+//! 480 PNG depth image takes about 1 ms (icl-livingroom1, whose log-odds frames at 0.05 m
+//! integrate in 2.6 ms; BENCHMARKS.md session 42), and with a second core the engine leaves
+//! that core idle between its parallel parts (a build of icl-livingroom1 on two threads: 0.71x
+//! the time, session 31).
 
 use std::sync::mpsc;
 

@@ -391,19 +391,11 @@ fn paeth_steps<const K: usize>(
     (mut last, mut before): ([[u8; 2]; K], [[u8; 2]; K]),
 ) -> ([[u8; 2]; K], [[u8; 2]; K]) {
     for step in steps {
-        // Rows `K..=2` from the row above's pixels in registers, then row 1 from `above`.
-        for r in 0..K - 1 {
+        // (A loop the compiler unrolls, each row's `j` a constant: `(1..=K).rev()` was not.)
+        for r in 0..K {
             let j = K - r;
-            let (i, left) = ((j - 1) * row + 2 * (step + 1 - j), last[j - 1]);
-            let (up, corner) = (last[j - 2], before[j - 2]);
-            let new = [
-                rows[i].wrapping_add(paeth(left[0], up[0], corner[0])),
-                rows[i + 1].wrapping_add(paeth(left[1], up[1], corner[1])),
-            ];
-            rows[i..i + 2].copy_from_slice(&new);
-            (before[j - 1], last[j - 1]) = (left, new);
+            paeth_pixel(above, rows, row, (j, step + 1 - j), &mut last, &mut before);
         }
-        paeth_pixel(above, rows, row, (1, step), &mut last, &mut before);
     }
     (last, before)
 }

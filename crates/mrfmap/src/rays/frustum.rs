@@ -717,7 +717,9 @@ macro_rules! split_voxels {
                         (Seen::None, _) => {}
                         // (A seen box always has a footprint; without one, it is split untested.)
                         (Seen::Some, f) => {
-                            if cube_meets(&child, surface) || f.is_none_or(|f| self.box_crossed(&child, &f.rect, f.depths, f.centre)) {
+                            if cube_meets(&child, surface)
+                                || f.is_none_or(|f| self.box_crossed(&child, &f.rect, f.depths, f.centre))
+                            {
                                 self.$name(child, surface, settled, mask)
                             }
                         }
@@ -1334,9 +1336,9 @@ impl<'a> View<'a> {
 
     /// The rectangle of pixels whose rays can meet the box with these eight corners, the
     /// box's camera-depth range, whether its image lies wholly inside the image, and its
-    /// middle ([`BoxImage`]); `None` when no pixel can see it (behind the camera, outside the view frustum, or between
-    /// pixel centres). (Inlined into its callers: as a call it was 8% of a projected frame,
-    /// and inlined the frame took 0.97-0.98x the time.)
+    /// middle ([`BoxImage`]); `None` when no pixel can see it (behind the camera, outside the
+    /// view frustum, or between pixel centres). (Inlined into its callers: as a call it was
+    /// 8% of a projected frame, and inlined the frame took 0.97-0.98x the time.)
     #[inline(always)]
     fn footprint<'c>(&self, corners: impl Iterator<Item = &'c Corner> + Clone) -> Option<BoxImage> {
         let (mut z_near, mut z_far) = (f64::INFINITY, f64::NEG_INFINITY);
@@ -1457,13 +1459,8 @@ impl<'a> View<'a> {
         // reaching behind the camera plane has its centre projected.)
         let (seg, width) = (self.seg, self.seg.width);
         let centre = centre.or_else(|| {
-            let c: [f64; 3] = std::array::from_fn(|k| {
-                self.base[k] + (0..3).map(|a| (b.lo[a] + b.hi[a]) as f64 * 0.5 * self.step[a][k]).sum::<f64>()
-            });
-            (c[2] > 0.0).then(|| {
-                let inv_z = 1.0 / c[2];
-                [(self.fx * c[0] * inv_z + self.cx) as f32, (self.fy * c[1] * inv_z + self.cy) as f32]
-            })
+            let c = self.corner(self.point_at(std::array::from_fn(|a| (b.lo[a] + b.hi[a]) as f64 * 0.5)));
+            (c.z > 0.0).then_some([c.u as f32, c.v as f32])
         });
         if let Some([cu, cv]) = centre {
             // The nearest pixel centre, clamped to the footprint: a truncating cast of

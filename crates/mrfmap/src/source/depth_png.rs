@@ -601,6 +601,30 @@ mod tests {
         assert_eq!(img.data(), &[300.0]);
     }
 
+    /// A broken header or chunk layout is an error that names it: a size of zero, an unknown
+    /// interlace method, a chunk claiming more than 2^31 bytes, an image with no pixel data.
+    #[test]
+    fn refuses_broken_headers_and_chunks() {
+        let good = by_hand(2, 1, 0, &[0, 0, 1, 0, 2], 100);
+        assert_eq!(decode(&good).unwrap().data(), &[1.0, 2.0]);
+        let e = decode(&by_hand(0, 1, 0, &[0], 100)).unwrap_err();
+        assert!(e.contains("size of 0x1"), "{e}");
+        let e = decode(&by_hand(2, 1, 2, &[0, 0, 1, 0, 2], 100)).unwrap_err();
+        assert!(e.contains("interlace method"), "{e}");
+        // The first IDAT's length (just after the 8-byte signature and the 25-byte IHDR).
+        let mut huge = good.clone();
+        huge[33..37].copy_from_slice(&u32::MAX.to_be_bytes());
+        let e = decode(&huge).unwrap_err();
+        assert!(e.contains("a chunk claims 4294967295 bytes"), "{e}");
+        // The signature and header, then the end.
+        let mut empty = good[..33].to_vec();
+        empty.extend([0, 0, 0, 0]);
+        empty.extend(b"IEND");
+        empty.extend(crc32fast::hash(b"IEND").to_be_bytes());
+        let e = decode(&empty).unwrap_err();
+        assert!(e.contains("no pixel data"), "{e}");
+    }
+
     #[test]
     fn round_trip_quantises_to_scale() {
         let mut img = DepthImage::new(5, 3);

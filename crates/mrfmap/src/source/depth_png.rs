@@ -87,7 +87,10 @@ pub fn decode_depth_png(
     Ok(DepthImage::from_vec(width, height, data).expect("size checked above"))
 }
 
-/// Rows unfiltered together where they are all Paeth-filtered ([`paeth_rows`]).
+/// Rows unfiltered together where they are all Paeth-filtered ([`paeth_rows`]). Chosen on
+/// icl-livingroom1 at 0.05 m, one thread, whole build (decoding in turn with the frames): 2
+/// rows took 1.024x the time of 4, and 8 rows (their pixels no longer fit in registers) 1.043x
+/// (8 alternating pairs; BENCHMARKS.md, session 42).
 const BATCH: usize = 4;
 
 /// What a PNG's header chunk (IHDR) says.

@@ -84,16 +84,25 @@ pub fn floor_i32(x: f64) -> i32 {
 /// [`floor_i32`] in a form the compiler runs in SIMD lanes: the same value for every input
 /// but NaN (which gives an unspecified number). The clamp, the rounding and the conversion are
 /// additions and comparisons of `f64` (`1.5 * 2^52` added to an integer below `2^51` in size
-/// leaves it in the low 32 bits), where `floor` is a call into libm on baseline x86-64 and
-/// `as i32` a scalar conversion with its saturation checks (in a lane loop over a row of
-/// pixels, that conversion was a third of the loop).
+/// leaves it in the low 32 bits), where `as i32` is a scalar conversion with its saturation
+/// checks (in a lane loop over a row of pixels, that conversion was a third of the loop).
+///
+/// `FLOOR_INSTRUCTION` says whether the caller is compiled where `floor` is one instruction
+/// (SSE4.1's `roundpd`, in the AVX2 copies of the lane loops): the rounding is then that
+/// instruction, where on baseline x86-64 `floor` is a call into libm and the rounding is made
+/// of additions and a comparison instead. (The instruction made icl-livingroom-5's frames
+/// 0.94-0.96x as long at 0.05 m: BENCHMARKS.md, session 43.)
 #[inline(always)]
-pub(crate) fn floor_i32_lanes(x: f64) -> i32 {
+pub(crate) fn floor_i32_lanes<const FLOOR_INSTRUCTION: bool>(x: f64) -> i32 {
     const MAGIC: f64 = 6_755_399_441_055_744.0; // 1.5 * 2^52
     let c = if x < i32::MAX as f64 { x } else { i32::MAX as f64 };
     let c = if c > i32::MIN as f64 { c } else { i32::MIN as f64 };
-    let nearest = (c + MAGIC) - MAGIC;
-    let floor = if nearest > c { nearest - 1.0 } else { nearest };
+    let floor = if FLOOR_INSTRUCTION {
+        c.floor()
+    } else {
+        let nearest = (c + MAGIC) - MAGIC;
+        if nearest > c { nearest - 1.0 } else { nearest }
+    };
     (floor + MAGIC).to_bits() as u32 as i32
 }
 
@@ -670,9 +679,9 @@ mod tests {
         }
     }
 
-    /// [`floor_i32_lanes`] is [`floor_i32`] for every number: around each integer, at the
-    /// halves (where rounding to nearest picks an even integer), at the ends of `i32` and
-    /// beyond, and at random.
+    /// [`floor_i32_lanes`], either way of rounding, is [`floor_i32`] for every number: around
+    /// each integer, at the halves (where rounding to nearest picks an even integer), at the
+    /// ends of `i32` and beyond, and at random.
     #[test]
     fn floor_in_lanes_is_floor_i32() {
         let mut rng = crate::random::Rng::new(5);
@@ -688,7 +697,8 @@ mod tests {
             xs.push(rng.range(-1.0, 1.0) * scale);
         }
         for x in xs {
-            assert_eq!(floor_i32_lanes(x), floor_i32(x), "{x}");
+            assert_eq!(floor_i32_lanes::<false>(x), floor_i32(x), "{x}");
+            assert_eq!(floor_i32_lanes::<true>(x), floor_i32(x), "{x}");
         }
     }
 

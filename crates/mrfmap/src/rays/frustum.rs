@@ -567,14 +567,15 @@ impl Segments {
 /// closures and lane loops (the plain pixels' ranges, depths and end voxels,
 /// [`FrameRays::row_plain`], and which end voxels are new, [`note_ends`]) are compiled with its
 /// features (closures in a shared inlined body would not be). The same values bit for bit: no
-/// fused multiply-adds.
+/// fused multiply-adds. `$floor` says whether the copy's features have `floor` as one
+/// instruction ([`crate::map::floor_i32_lanes`]).
 ///
 /// With `CUT` (only without bounds), the readings beyond the max range are cut in lanes too
 /// ([`FrameRays::row_cut`]); without, one ray at a time. Two copies, not one with a test:
 /// with the cut's code in it, the loop over rows that have no reading beyond the max range
 /// took 2.5-5% longer (BENCHMARKS.md, session 34), so such rows keep the copy without it.
 macro_rules! segments_row {
-    ($(#[$attr:meta])* $name:ident) => {
+    ($(#[$attr:meta])* $name:ident, floor instruction: $floor:literal) => {
         $(#[$attr])*
         fn $name<const CUT: bool>(
             rays: &FrameRays,
@@ -601,7 +602,7 @@ macro_rules! segments_row {
             let v = v as u32;
             let plain = limits.bounds.is_none() && {
                 let (row_ends, mut last_key) = (&mut *pixels.ends, None);
-                let plain = rays.row_plain(v, max_range, inv_r, |start, b| {
+                let plain = rays.row_plain::<$floor>(v, max_range, inv_r, |start, b| {
                     // (The other pixels' ends are -inf, no segment: a copy where a branch per
                     // pixel was a sixth of a long sequence's row filling.)
                     row_ends[start..start + b.len].copy_from_slice(&b.z_end[..b.len]);
@@ -639,14 +640,16 @@ macro_rules! segments_row {
 
 segments_row!(
     /// [`segments_row!`] for any processor.
-    segments_row_baseline
+    segments_row_baseline,
+    floor instruction: false
 );
 
 segments_row!(
     /// [`segments_row!`] compiled for AVX2.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2")]
-    segments_row_avx2
+    segments_row_avx2,
+    floor instruction: true
 );
 
 /// Defines under `$name` the splitting of an undecided box inside one brick down to voxels,
@@ -938,7 +941,18 @@ fn note_ends(
         let same_up = up_has[k] & (x == up[0][k]) & (y == up[1][k]) & (z == up[2][k]);
         new[k] = b.plain[k] & !same_left & !same_up;
     }
-    for (k, _) in new[..n].iter().enumerate().filter(|(_, new)| **new) {
+    // The new ones' columns as the set bits of a mask, eight flags (bytes of 0 or 1) at a
+    // time by a product that gathers their low bits into its top byte: a branch per column
+    // on the flags themselves mispredicted (it was an eighth of the row filling).
+    const { assert!(PLAIN_COLUMNS == 64, "one bit per column of a u64") };
+    let mut columns = 0u64;
+    for (i, flags) in new.chunks_exact(8).enumerate() {
+        let bytes = u64::from_le_bytes(std::array::from_fn(|j| flags[j] as u8));
+        columns |= (bytes.wrapping_mul(0x0102_0408_1020_4080) >> 56) << (8 * i);
+    }
+    while columns != 0 {
+        let k = columns.trailing_zeros() as usize;
+        columns &= columns - 1;
         ends.push(VoxelKey([b.key[0][k], b.key[1][k], b.key[2][k]]));
     }
     for (a, k) in above.key.iter_mut().enumerate() {

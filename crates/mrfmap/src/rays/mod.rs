@@ -246,10 +246,10 @@ impl FrameRays<'_> {
     /// the other valid ones' rays are [`FrameRays::ray`]. Each block is computed in loops the
     /// compiler vectorises, the same values bit for bit as from the pixels' rays (`range *
     /// cz`, and [`crate::map::floor_i32`] of `(origin + range dir) scale`, computed by
-    /// [`floor_i32_lanes`], without fused operations). Does nothing and returns false without
-    /// cached camera rays ([`FrameRays::with_camera_rays`]).
+    /// [`floor_i32_lanes`], without fused operations; `FLOOR_INSTRUCTION` is its own). Does
+    /// nothing and returns false without cached camera rays ([`FrameRays::with_camera_rays`]).
     #[inline(always)]
-    pub(crate) fn row_plain(
+    pub(crate) fn row_plain<const FLOOR_INSTRUCTION: bool>(
         &self,
         v: u32,
         max_range: f64,
@@ -281,7 +281,7 @@ impl FrameRays<'_> {
                 let unit = [x * inv, y * inv, inv];
                 for (a, key) in b.key.iter_mut().enumerate() {
                     let d = rotation[(a, 0)] * unit[0] + rotation[(a, 1)] * unit[1] + rotation[(a, 2)] * unit[2];
-                    key[k] = floor_i32_lanes((origin[a] + r * d) * scale);
+                    key[k] = floor_i32_lanes::<FLOOR_INSTRUCTION>((origin[a] + r * d) * scale);
                 }
             }
             visit(start, &b);
@@ -773,9 +773,9 @@ mod tests {
     }
 
     /// `row_plain` gives a row's pixels in order, says which are valid and which plain as
-    /// their rays do, and its plain values are those of the rays bit for bit: over block
-    /// boundaries (a 150-pixel row), invalid depths, readings beyond the max range and several
-    /// poses.
+    /// their rays do, and its plain values are those of the rays bit for bit, either way of
+    /// rounding: over block boundaries (a 150-pixel row), invalid depths, readings beyond the
+    /// max range and several poses.
     #[test]
     fn plain_rows_are_their_rays_bit_for_bit() {
         use crate::frames::{DepthImage, look_at};
@@ -802,15 +802,22 @@ mod tests {
             let mut cache = CameraRays::default();
             let rays = FrameRays::with_camera_rays(&frame, &mut cache);
             let (max_range, scale) = ([5.0, f64::INFINITY][trial % 2], rng.range(10.0, 100.0));
-            assert!(!FrameRays::new(&frame).row_plain(0, max_range, scale, |_, _| ()), "no cached camera rays");
-            for v in 0..40 {
+            assert!(
+                !FrameRays::new(&frame).row_plain::<false>(0, max_range, scale, |_, _| ()),
+                "no cached camera rays"
+            );
+            for (v, floor_instruction) in (0..40).flat_map(|v| [(v, false), (v, true)]) {
                 let mut visited = Vec::new();
-                assert!(rays.row_plain(v, max_range, scale, |start, b| {
+                let visit = |start: usize, b: &PlainBlock| {
                     for k in 0..b.len {
                         let plain = b.plain[k].then(|| (b.z_end[k], [0, 1, 2].map(|a| b.key[a][k])));
                         visited.push((start + k, b.valid[k], plain));
                     }
-                }));
+                };
+                assert!(match floor_instruction {
+                    false => rays.row_plain::<false>(v, max_range, scale, visit),
+                    true => rays.row_plain::<true>(v, max_range, scale, visit),
+                });
                 assert_eq!(visited.iter().map(|p| p.0).collect::<Vec<_>>(), (0..150).collect::<Vec<_>>(), "row {v}");
                 let mut rays_of_row = rays.row(v).peekable();
                 for (u, valid, plain) in visited {

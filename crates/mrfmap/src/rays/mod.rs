@@ -58,9 +58,16 @@ pub fn pixel_direction(camera: &Camera, rotation: &Matrix3<f64>, u: u32, v: u32)
 /// not three: [`CameraRays`] does this for every pixel.
 #[inline]
 fn unit_ray(x: f64, y: f64) -> (Vector3<f64>, f64, f64) {
-    let norm = (x * x + y * y + 1.0).sqrt();
+    let norm = z1_norm(x, y * y);
     let inv = 1.0 / norm;
     (unit_along(x, y, inv), norm, inv)
+}
+
+/// The norm of `(x, y, 1)`, with `y2 = y * y`: every copy of the rays computes it so (`x * x +
+/// y2 + 1.0` evaluates left to right), and so gets the same bits.
+#[inline(always)]
+fn z1_norm(x: f64, y2: f64) -> f64 {
+    (x * x + y2 + 1.0).sqrt()
 }
 
 /// The unit ray along `(x, y, 1)`, whose norm has reciprocal `inv`.
@@ -134,8 +141,7 @@ fn norms_of_row_avx2(xs: &[f64], y: f64) -> (Vec<f64>, Vec<f64>) {
 #[inline(always)]
 fn norms_of_row(xs: &[f64], y: f64) -> (Vec<f64>, Vec<f64>) {
     let y2 = y * y;
-    // (`x * x + y * y + 1.0` evaluates left to right: the same sums as `unit_ray`.)
-    let norms: Vec<f64> = xs.iter().map(|x| (x * x + y2 + 1.0).sqrt()).collect();
+    let norms: Vec<f64> = xs.iter().map(|&x| z1_norm(x, y2)).collect();
     let invs = norms.iter().map(|n| 1.0 / n).collect();
     (norms, invs)
 }
@@ -257,8 +263,8 @@ impl FrameRays<'_> {
         mut visit: impl FnMut(usize, &PlainBlock),
     ) -> bool {
         let Some(c) = self.camera_rays else { return false };
-        let (norms, invs) = c.row_norms(v);
         let (y, depth, rotation, origin) = (c.ys[v as usize], self.frame.depth.row(v), &self.rotation, self.origin);
+        let y2 = y * y;
         let mut b = PlainBlock {
             len: 0,
             valid: [false; PLAIN_COLUMNS],
@@ -268,12 +274,14 @@ impl FrameRays<'_> {
         };
         for start in (0..depth.len()).step_by(PLAIN_COLUMNS) {
             let stop = (start + PLAIN_COLUMNS).min(depth.len());
-            let (zs, xs, norms, invs) =
-                (&depth[start..stop], &c.xs[start..stop], &norms[start..stop], &invs[start..stop]);
+            let (zs, xs) = (&depth[start..stop], &c.xs[start..stop]);
             b.len = stop - start;
             // Every column, valid or not (the invalid ones' values go unused): no branch.
-            // `rotation * unit` as nalgebra sums it, column by column.
-            for (k, ((&z, &x), (&norm, &inv))) in zs.iter().zip(xs).zip(norms.iter().zip(invs)).enumerate() {
+            // The z = 1 norm computed here, not first into a row of norms of its own (two
+            // allocations and a pass), and `rotation * unit` as nalgebra sums it.
+            for (k, (&z, &x)) in zs.iter().zip(xs).enumerate() {
+                let norm = z1_norm(x, y2);
+                let inv = 1.0 / norm;
                 let r = z as f64 * norm;
                 b.valid[k] = DepthImage::is_valid(z);
                 b.plain[k] = b.valid[k] & (r <= max_range);
@@ -340,9 +348,8 @@ impl FrameRays<'_> {
         for start in (0..depth.len()).step_by(PLAIN_COLUMNS) {
             let stop = (start + PLAIN_COLUMNS).min(depth.len());
             let (zs, xs) = (&depth[start..stop], &c.xs[start..stop]);
-            // (`x * x + y * y + 1.0` left to right, as `unit_ray`.)
             for (k, (&z, &x)) in zs.iter().zip(xs).enumerate() {
-                let norm = (x * x + y2 + 1.0).sqrt();
+                let norm = z1_norm(x, y2);
                 inv[k] = 1.0 / norm;
                 beyond[k] = DepthImage::is_valid(z) && z as f64 * norm > max_range;
             }

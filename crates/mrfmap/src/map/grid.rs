@@ -553,24 +553,35 @@ impl<V: Copy + Default> Grid<V> {
     }
 
     /// Calls `update` on the brick of every key of `work` with that key's value, allocating
-    /// missing bricks, in parallel. The work grows with `work`, not with the grid: the bricks
-    /// are taken out of the hash map, updated, and put back.
+    /// missing bricks, in parallel, and returns what it returned per brick (in no particular
+    /// order). The work grows with `work`, not with the grid: the bricks are taken out of the
+    /// hash map, updated, and put back.
     ///
     /// ```
     /// use mrfmap::map::{BrickKey, Grid};
     /// let mut grid: Grid<f32> = Grid::new(0.1).unwrap();
     /// let work: rustc_hash::FxHashMap<BrickKey, usize> = [(BrickKey([0, 0, 0]), 3), (BrickKey([-1, 2, 0]), 5)].into_iter().collect();
-    /// grid.update_bricks(&work, |brick, slot| *brick.get_or_insert(*slot, 0.0) += 1.0);
+    /// let mut lens = grid.update_bricks(&work, |brick, slot| {
+    ///     *brick.get_or_insert(*slot, 0.0) += 1.0;
+    ///     brick.len()
+    /// });
     /// assert_eq!((grid.len(), grid.brick_count()), (2, 2));
+    /// lens.sort();
+    /// assert_eq!(lens, vec![(BrickKey([-1, 2, 0]), 1), (BrickKey([0, 0, 0]), 1)]);
     /// ```
-    pub fn update_bricks<T: Sync>(&mut self, work: &FxHashMap<BrickKey, T>, update: impl Fn(&mut Brick<V>, &T) + Sync)
+    pub fn update_bricks<T: Sync, R: Send>(
+        &mut self,
+        work: &FxHashMap<BrickKey, T>,
+        update: impl Fn(&mut Brick<V>, &T) -> R + Sync,
+    ) -> Vec<(BrickKey, R)>
     where
         V: Send,
     {
         let mut taken: Vec<(BrickKey, Brick<V>, &T)> =
             work.iter().map(|(k, t)| (*k, self.bricks.remove(k).unwrap_or_default(), t)).collect();
-        taken.par_iter_mut().for_each(|(_, brick, t)| update(brick, t));
+        let results = taken.par_iter_mut().map(|(k, brick, t)| (*k, update(brick, t))).collect();
         self.bricks.extend(taken.into_iter().map(|(k, brick, _)| (k, brick)));
+        results
     }
 
     /// Brick keys in sorted order, for deterministic output.

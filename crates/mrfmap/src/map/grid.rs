@@ -90,8 +90,8 @@ pub fn floor_i32(x: f64) -> i32 {
 /// `FLOOR_INSTRUCTION` says whether the caller is compiled where `floor` is one instruction
 /// (SSE4.1's `roundpd`, in the AVX2 copies of the lane loops): the rounding is then that
 /// instruction, where on baseline x86-64 `floor` is a call into libm and the rounding is made
-/// of additions and a comparison instead. (The instruction made icl-livingroom-5's frames
-/// 0.94-0.96x as long at 0.05 m: BENCHMARKS.md, session 43.)
+/// of additions and a comparison instead. (The instruction alone made icl-livingroom-5's
+/// frames at 0.05 m take 0.935x the time: BENCHMARKS.md, session 43.)
 #[inline(always)]
 pub(crate) fn floor_i32_lanes<const FLOOR_INSTRUCTION: bool>(x: f64) -> i32 {
     const MAGIC: f64 = 6_755_399_441_055_744.0; // 1.5 * 2^52

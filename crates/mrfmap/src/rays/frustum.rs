@@ -19,7 +19,8 @@
 //!    surface inside it: it is then the frame's surface, crossed or not, and is set as
 //!    crossed. Pixels go in blocks of 4 x 4; a block is ruled out first by its depth
 //!    bounds, then by one slab test of the box of its rays' directions
-//!    ([`View::block_misses`]), and only then are its rows tested in lanes. An undecided box
+//!    ([`View::block_misses`]), and only then are its rows tested in lanes; a footprint
+//!    many blocks across has its blocks ruled out 2 x 2 at a time first. An undecided box
 //!    of 2 x 2 x 2 or 4 x 4 x 4 voxels without a surface gets the same test as a whole
 //!    first: behind surfaces, where most tests say "not crossed", one test then settles
 //!    all its voxels.
@@ -1413,27 +1414,37 @@ impl<'a> View<'a> {
         inv
     }
 
-    /// Whether no pixel of block `(bu, bv)` of the pyramid's first level, whose segments lie
-    /// within `bounds`, can pass through the box `lo..hi` (world axes, relative to the camera):
-    /// the slab test of [`slabs_cross`] for the whole box of directions the block's rays lie
-    /// in, one test where its pixels take one per row. Behind a surface seen at a slant, a
-    /// voxel's nearest corner is far in front of where the rays meet it, so most blocks that
-    /// pass [`Bounds::miss`] are stopped here.
+    /// Whether no pixel of the blocks `bu.0..=bu.1` x `bv.0..=bv.1` of the pyramid's first
+    /// level, whose segments lie within `bounds`, can pass through the box `lo..hi` (world
+    /// axes, relative to the camera): the slab test of [`slabs_cross`] for the whole box of
+    /// directions the blocks' rays lie in, one test where their pixels take one per row.
+    /// Behind a surface seen at a slant, a voxel's nearest corner is far in front of where the
+    /// rays meet it, so most blocks that pass [`Bounds::miss`] are stopped here.
     ///
     /// It never says "miss" for a block with a pixel that passes: a ray with direction `d`
     /// (per metre of camera depth) is inside slab `a` at depth `t > 0` only where
-    /// `t dmin <= hi` and `t dmax >= lo` for any `dmin <= d_a <= dmax`, and the block's `d_a`
+    /// `t dmin <= hi` and `t dmax >= lo` for any `dmin <= d_a <= dmax`, and the blocks' `d_a`
     /// (sums of a column's part and a row's, rounded) lie between the rounded sums of the
-    /// least parts and of the greatest. The lanes' values are within a relative 2^-23 of
-    /// those depths (an f32 reciprocal and an f32 product), so the bounds are widened by a
-    /// relative 1e-5 first.
+    /// least parts and of the greatest. A column's part is `x_u R e_x` with `x_u = (u - cx) /
+    /// fx`, monotonic in `u` (rounding keeps it so), and a row's likewise: over a run of
+    /// blocks the least and greatest parts are those of its first or its last block. The
+    /// lanes' values are within a relative 2^-23 of those depths (an f32 reciprocal and an
+    /// f32 product), so the bounds are widened by a relative 1e-5 first.
     #[inline(always)] // (into the copies of `split_voxels!`, as `box_crossed`)
-    fn block_misses(&self, bu: usize, bv: usize, bounds: &Bounds, lo: &[f32; 3], hi: &[f32; 3]) -> bool {
+    fn block_misses(
+        &self,
+        bu: (usize, usize),
+        bv: (usize, usize),
+        bounds: &Bounds,
+        lo: &[f32; 3],
+        hi: &[f32; 3],
+    ) -> bool {
         let (mut t0, mut t1) = (0.0f64, f64::INFINITY);
-        let rows = &self.row_block_dirs[bv];
+        let (first_row, last_row) = (&self.row_block_dirs[bv.0], &self.row_block_dirs[bv.1]);
         for a in 0..3 {
-            let [c_lo, c_hi] = self.col_block_dirs[a][bu];
-            let (d_min, d_max) = (c_lo + rows[a][0], c_hi + rows[a][1]);
+            let (first, last) = (self.col_block_dirs[a][bu.0], self.col_block_dirs[a][bu.1]);
+            let d_min = min(first[0], last[0]) + min(first_row[a][0], last_row[a][0]);
+            let d_max = max(first[1], last[1]) + max(first_row[a][1], last_row[a][1]);
             let (l, h) = (lo[a] as f64, hi[a] as f64);
             // t d_min <= h
             if d_min > 0.0 {
@@ -1517,22 +1528,63 @@ impl<'a> View<'a> {
     /// pyramid's first level that `rect` meets and that may reach the box `lo..hi` lying
     /// between camera depths `z_near` and `z_far`: blocks whose depth bounds or directions
     /// miss it ([`Bounds::miss`], [`View::block_misses`]) are skipped; a break stops the scan.
-    /// (Plain loops, not iterator adaptors: those compiled to functions of their own, outside
-    /// the AVX2 copies this is inlined into.)
+    ///
+    /// A rectangle [`COARSE_BLOCKS`] blocks or more across is looked at 2 x 2 blocks at a
+    /// time first, by the same two tests on the pyramid's second level: a box seen near the
+    /// camera, or behind a surface it is close to, has a large footprint most of whose blocks
+    /// both tests rule out, and one test then rules out four (icl-livingroom-5 at 0.05 m:
+    /// 0.93x the time of a frame, BENCHMARKS.md, session 44). Smaller rectangles, most at
+    /// finer resolutions, go block by block, where the extra test would seldom pay.
     #[inline(always)]
     fn blocks_reaching(
         &self,
         rect: &Rect,
-        (z_near, z_far): (f32, f32),
+        depths: (f32, f32),
         lo: &[f32; 3],
         hi: &[f32; 3],
         mut row: impl FnMut((usize, usize), usize) -> ControlFlow<()>,
     ) -> ControlFlow<()> {
+        let k = BLOCK.trailing_zeros() as usize;
+        let (bu, bv) = ((rect.u0 >> k, rect.u1 >> k), (rect.v0 >> k, rect.v1 >> k));
+        let levels = &self.seg.levels;
+        if (bu.1 - bu.0 + 1).max(bv.1 - bv.0 + 1) < COARSE_BLOCKS || levels.len() < 2 {
+            return self.blocks_within(rect, bu, bv, depths, lo, hi, &mut row);
+        }
+        let pairs = &levels[1];
+        for cv in bv.0 >> 1..(bv.1 >> 1) + 1 {
+            let pair_v = ((2 * cv).max(bv.0), (2 * cv + 1).min(bv.1));
+            for cu in bu.0 >> 1..(bu.1 >> 1) + 1 {
+                let pair_u = ((2 * cu).max(bu.0), (2 * cu + 1).min(bu.1));
+                let cell = &pairs.cells[cv * pairs.width + cu];
+                if cell.miss(depths.0, depths.1) || self.block_misses(pair_u, pair_v, cell, lo, hi) {
+                    continue;
+                }
+                self.blocks_within(rect, pair_u, pair_v, depths, lo, hi, &mut row)?;
+            }
+        }
+        ControlFlow::Continue(())
+    }
+
+    /// [`View::blocks_reaching`] for the blocks `bu.0..=bu.1` x `bv.0..=bv.1`, one by one.
+    /// (Plain loops, not iterator adaptors: those compiled to functions of their own, outside
+    /// the AVX2 copies this is inlined into.)
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    fn blocks_within(
+        &self,
+        rect: &Rect,
+        bu: (usize, usize),
+        bv: (usize, usize),
+        (z_near, z_far): (f32, f32),
+        lo: &[f32; 3],
+        hi: &[f32; 3],
+        row: &mut impl FnMut((usize, usize), usize) -> ControlFlow<()>,
+    ) -> ControlFlow<()> {
         let (k, blocks) = (BLOCK.trailing_zeros() as usize, &self.seg.levels[0]);
-        for bv in rect.v0 >> k..(rect.v1 >> k) + 1 {
-            for bu in rect.u0 >> k..(rect.u1 >> k) + 1 {
+        for bv in bv.0..bv.1 + 1 {
+            for bu in bu.0..bu.1 + 1 {
                 let cell = &blocks.cells[bv * blocks.width + bu];
-                if cell.miss(z_near, z_far) || self.block_misses(bu, bv, cell, lo, hi) {
+                if cell.miss(z_near, z_far) || self.block_misses((bu, bu), (bv, bv), cell, lo, hi) {
                     continue;
                 }
                 let (u0, u1) = ((bu << k).max(rect.u0), ((bu + 1) << k).min(rect.u1 + 1));
@@ -1544,6 +1596,12 @@ impl<'a> View<'a> {
         ControlFlow::Continue(())
     }
 }
+
+/// Rectangles of pixels at least this many blocks across are scanned 2 x 2 blocks at a time
+/// first ([`View::blocks_reaching`]). (From 3, coffin-world at 0.05 m took 1.02x the time of
+/// a frame; from 4, 0.97x; from 5, 0.98x. Going on down from the pyramid's further levels
+/// for rectangles of 8 blocks and more changed nothing measurable.)
+const COARSE_BLOCKS: usize = 4;
 
 #[cfg(test)]
 pub(super) mod tests {
@@ -1861,12 +1919,13 @@ pub(super) mod tests {
         );
     }
 
-    /// A block that [`View::block_misses`] rules out has no pixel whose slab test passes, for
-    /// voxels around the frames' surfaces (where the exact tests run); and it rules out many.
+    /// A block, or a run of 2 x 2 blocks with the bounds of the pyramid's second level, that
+    /// [`View::block_misses`] rules out has no pixel whose slab test passes, for voxels around
+    /// the frames' surfaces (where the exact tests run); and it rules out many.
     #[test]
     fn block_tests_keep_every_pixel_that_crosses() {
         let mut rng = Rng::new(11);
-        let (mut kept_crossing, mut ruled_out) = (0usize, 0usize);
+        let (mut kept_crossing, mut ruled_out) = ([0usize; 2], [0usize; 2]);
         for case in 0..60 {
             let frame = random_frame(&mut rng);
             let r = rng.range(0.03, 0.25);
@@ -1876,7 +1935,7 @@ pub(super) mod tests {
             p.segments.fill(&rays, &limits, r);
             let Some((view, _)) = View::over(&rays, &p.segments, &limits, r, None) else { continue };
             let seg = &p.segments;
-            let blocks = &seg.levels[0];
+            let (blocks_wide, blocks_high) = (seg.levels[0].width, seg.height.div_ceil(BLOCK));
             for _ in 0..40 {
                 // A voxel near the end of a random pixel's segment.
                 let (u, v) = ((rng.uniform() * seg.width as f64) as u32, (rng.uniform() * seg.height as f64) as u32);
@@ -1886,22 +1945,31 @@ pub(super) mod tests {
                     std::array::from_fn(|a| floor_i32(end[a] / r) + rng.range(-2.0, 3.0).floor() as i32);
                 let lo: [f32; 3] = std::array::from_fn(|a| (key[a] as f64 * r - view.origin[a]) as f32);
                 let hi: [f32; 3] = std::array::from_fn(|a| ((key[a] + 1) as f64 * r - view.origin[a]) as f32);
-                for bv in 0..seg.height.div_ceil(BLOCK) {
-                    for bu in 0..blocks.width {
-                        let crossing = (bv * BLOCK..((bv + 1) * BLOCK).min(seg.height)).any(|v| {
-                            (bu * BLOCK..((bu + 1) * BLOCK).min(seg.width)).any(|u| {
-                                slabs_cross(&[seg.pixel(v * seg.width + u)], &view.inv_dirs(u, v), &lo, &hi)[0]
-                            })
-                        });
-                        let out = view.block_misses(bu, bv, &blocks.cells[bv * blocks.width + bu], &lo, &hi);
-                        assert!(!(out && crossing), "case {case}: block ({bu}, {bv}) ruled out of voxel {key:?}");
-                        kept_crossing += crossing as usize;
-                        ruled_out += out as usize;
+                // Level 0, block by block; level 1 (when there is one), its cells' runs of blocks.
+                for (l, level) in seg.levels.iter().enumerate().take(2) {
+                    for cv in 0..blocks_high.div_ceil(1 << l) {
+                        for cu in 0..level.width {
+                            let bu = (cu << l, (((cu + 1) << l) - 1).min(blocks_wide - 1));
+                            let bv = (cv << l, (((cv + 1) << l) - 1).min(blocks_high - 1));
+                            let crossing = (bv.0 * BLOCK..((bv.1 + 1) * BLOCK).min(seg.height)).any(|v| {
+                                (bu.0 * BLOCK..((bu.1 + 1) * BLOCK).min(seg.width)).any(|u| {
+                                    slabs_cross(&[seg.pixel(v * seg.width + u)], &view.inv_dirs(u, v), &lo, &hi)[0]
+                                })
+                            });
+                            let out = view.block_misses(bu, bv, &level.cells[cv * level.width + cu], &lo, &hi);
+                            assert!(
+                                !(out && crossing),
+                                "case {case}: blocks {bu:?} x {bv:?} ruled out of voxel {key:?}"
+                            );
+                            kept_crossing[l] += crossing as usize;
+                            ruled_out[l] += out as usize;
+                        }
                     }
                 }
             }
         }
-        assert!(kept_crossing > 1000 && ruled_out > 10 * kept_crossing, "{kept_crossing} kept, {ruled_out} ruled out");
+        assert!(kept_crossing[0] > 1000 && ruled_out[0] > 10 * kept_crossing[0], "{kept_crossing:?} {ruled_out:?}");
+        assert!(kept_crossing[1] > 500 && ruled_out[1] > 5 * kept_crossing[1], "{kept_crossing:?} {ruled_out:?}");
     }
 
     /// Voxels left open change nothing else: with random voxels and whole bricks settled,

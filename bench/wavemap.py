@@ -19,7 +19,9 @@ Semantics that differ (say them beside the numbers): wavemap marks a band in fro
 behind each hit instead of the end voxel, cuts its max range on z-depth (we and OctoMap cut
 the range along the ray), updates free space at coarse octree levels (not voxel by voxel) and
 is compiled with -march=native; its occupied cells are counted at the finest level.
-Standard library only; run from the repository root after `cargo build --release`.
+Standard library only; run from the repository root after `cargo build --release` (or, to
+measure the build `cargo install --profile dist` installs, `cargo build --profile dist -p
+mrfmap-cli` and `--mrfmap target/dist/mrfmap`: BENCHMARKS.md says which build each table used).
 """
 import argparse
 import json

@@ -668,9 +668,10 @@ segments_row!(
 
 segments_row!(
     /// [`segments_row!`] compiled for AVX-512 (x86-64-v4's set, [`has_avx512`]): its lanes
-    /// eight values wide where AVX2's are four. On a Zen 5 processor, icl-livingroom-5 frames
-    /// at 0.05 m took 0.94x the time of the AVX2 copy's (BENCHMARKS.md, session 44). (The
-    /// voxels' splitting compiled so took 1.03-1.06x the time: it stays with AVX2.)
+    /// eight values wide where AVX2's are four. On this project's machines (AMD EPYC),
+    /// icl-livingroom-5 frames at 0.05 m took 0.94x the time of the AVX2 copy's
+    /// (BENCHMARKS.md, session 44). (The voxels' splitting compiled so took 1.03-1.06x the
+    /// time: it stays with AVX2.)
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx512f,avx512bw,avx512cd,avx512dq,avx512vl")]
     segments_row_avx512,

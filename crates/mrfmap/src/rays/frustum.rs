@@ -1592,10 +1592,9 @@ impl<'a> View<'a> {
             for cu in bu.0 >> 1..(bu.1 >> 1) + 1 {
                 let pair_u = ((2 * cu).max(bu.0), (2 * cu + 1).min(bu.1));
                 let cell = &pairs.cells[cv * pairs.width + cu];
-                if cell.miss(depths.0, depths.1) || self.block_misses(pair_u, pair_v, cell, lo, hi) {
-                    continue;
+                if self.may_reach(cell, pair_u, pair_v, depths, lo, hi) {
+                    self.blocks_within(rect, pair_u, pair_v, depths, lo, hi, &mut row)?;
                 }
-                self.blocks_within(rect, pair_u, pair_v, depths, lo, hi, &mut row)?;
             }
         }
         ControlFlow::Continue(())
@@ -1611,7 +1610,7 @@ impl<'a> View<'a> {
         rect: &Rect,
         bu: (usize, usize),
         bv: (usize, usize),
-        (z_near, z_far): (f32, f32),
+        depths: (f32, f32),
         lo: &[f32; 3],
         hi: &[f32; 3],
         row: &mut impl FnMut((usize, usize), usize) -> ControlFlow<()>,
@@ -1620,7 +1619,7 @@ impl<'a> View<'a> {
         for bv in bv.0..bv.1 + 1 {
             for bu in bu.0..bu.1 + 1 {
                 let cell = &blocks.cells[bv * blocks.width + bu];
-                if cell.miss(z_near, z_far) || self.block_misses((bu, bu), (bv, bv), cell, lo, hi) {
+                if !self.may_reach(cell, (bu, bu), (bv, bv), depths, lo, hi) {
                     continue;
                 }
                 let (u0, u1) = ((bu << k).max(rect.u0), ((bu + 1) << k).min(rect.u1 + 1));
@@ -1630,6 +1629,22 @@ impl<'a> View<'a> {
             }
         }
         ControlFlow::Continue(())
+    }
+
+    /// Whether the blocks `bu.0..=bu.1` x `bv.0..=bv.1`, with depth bounds `cell`, may reach
+    /// the box `lo..hi` lying between camera depths `depths`: neither [`Bounds::miss`] nor
+    /// [`View::block_misses`] rules them out.
+    #[inline(always)]
+    fn may_reach(
+        &self,
+        cell: &Bounds,
+        bu: (usize, usize),
+        bv: (usize, usize),
+        (z_near, z_far): (f32, f32),
+        lo: &[f32; 3],
+        hi: &[f32; 3],
+    ) -> bool {
+        !cell.miss(z_near, z_far) && !self.block_misses(bu, bv, cell, lo, hi)
     }
 }
 

@@ -17,8 +17,10 @@
 //! 3. A single voxel that stays undecided gets the exact test: does the segment of some pixel
 //!    in its footprint pass through it (slab test)? Not if a segment ends at a measured
 //!    surface inside it: it is then the frame's surface, crossed or not, and is set as
-//!    crossed. Pixels go in blocks of 4 x 4; a block is ruled out first by its depth
-//!    bounds, then by one slab test of the box of its rays' directions
+//!    crossed. The pixel nearest the voxel's middle is tried first, and two thirds of the
+//!    voxels tested are settled by it ([`View::voxel_crossed`]); for the others the
+//!    footprint is scanned. Pixels go in blocks of 4 x 4; a block is ruled out first by its
+//!    depth bounds, then by one slab test of the box of its rays' directions
 //!    ([`View::block_misses`]), and only then are its rows tested in lanes; a footprint
 //!    many blocks across has its blocks ruled out 2 x 2 at a time first. An undecided box
 //!    of 2 x 2 x 2 or 4 x 4 x 4 voxels without a surface gets the same test as a whole

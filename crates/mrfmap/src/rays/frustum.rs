@@ -2025,6 +2025,55 @@ pub(super) mod tests {
         );
     }
 
+    /// A voxel's exact test that tries its first pixel before its footprint
+    /// ([`View::voxel_crossed`]) says what the box test of the voxel alone says
+    /// ([`View::box_crossed`]), for voxels around the frames' surfaces and in front of them; and
+    /// the first pixel settles a third of those crossed or more.
+    #[test]
+    fn a_voxels_first_pixel_changes_no_verdict() {
+        let mut rng = Rng::new(29);
+        let (mut verdicts, mut by_first) = ([0usize; 2], 0usize);
+        for _ in 0..40 {
+            let frame = random_frame(&mut rng);
+            let r = rng.range(0.03, 0.25);
+            let limits = RayLimits::default();
+            let mut p = Projector::default();
+            let rays = FrameRays::with_camera_rays(&frame, &mut p.camera_rays);
+            p.segments.fill(&rays, &limits, r);
+            let Some((view, _)) = View::over(&rays, &p.segments, &limits, r, None) else { continue };
+            for _ in 0..200 {
+                // A voxel on a random pixel's ray: in front of its end, or up to three voxels
+                // behind it.
+                let (u, v) = (
+                    (rng.uniform() * frame.camera.width as f64) as u32,
+                    (rng.uniform() * frame.camera.height as f64) as u32,
+                );
+                let Some(ray) = rays.ray(u, v) else { continue };
+                let t = if rng.uniform() < 0.5 {
+                    rng.range(0.2, 1.0) * ray.range
+                } else {
+                    ray.range + rng.range(0.0, 3.0) * r
+                };
+                let key: [i32; 3] = std::array::from_fn(|a| floor_i32((ray.origin[a] + t * ray.dir[a]) / r));
+                let voxel = Box3 { lo: key, hi: key.map(|k| k + 1) };
+                let c = view.corners(&voxel);
+                let new = view.voxel_crossed(&voxel, (&c[0], &c[7]), c.iter());
+                let old = view
+                    .footprint(c.iter())
+                    .is_some_and(|(rect, depths, _, centre)| view.box_crossed(&voxel, &rect, depths, centre));
+                assert_eq!(new, old, "voxel {key:?} at {r} m");
+                verdicts[new as usize] += 1;
+                let (lo, hi) = view.relative(&voxel);
+                let (cu, cv) = ((c[0].u + c[7].u) * 0.5, (c[0].v + c[7].v) * 0.5);
+                let inside =
+                    c[0].z > 0.0 && c[7].z > 0.0 && cu >= 0.0 && cv >= 0.0 && cu < view.u_last && cv < view.v_last;
+                by_first +=
+                    (inside && view.pixel_crosses(((cu + 0.5) as usize, (cv + 0.5) as usize), &lo, &hi)) as usize;
+            }
+        }
+        assert!(verdicts[0] > 1000 && verdicts[1] > 1000 && by_first * 3 > verdicts[1], "{verdicts:?} {by_first}");
+    }
+
     /// A block, or a run of 2 x 2 blocks with the bounds of the pyramid's second level, that
     /// [`View::block_misses`] rules out has no pixel whose slab test passes, for voxels around
     /// the frames' surfaces (where the exact tests run); and it rules out many.

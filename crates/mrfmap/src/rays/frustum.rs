@@ -1811,6 +1811,23 @@ pub(super) mod tests {
         }
     }
 
+    /// Calls `f` with the view of each of `cases` random frames' segments at a random
+    /// resolution (no limits), with the frame's rays and the generator for the case's own draws.
+    fn for_random_views(seed: u64, cases: usize, mut f: impl FnMut(&mut Rng, &FrameRays, &View, f64)) {
+        let mut rng = Rng::new(seed);
+        for _ in 0..cases {
+            let frame = random_frame(&mut rng);
+            let r = rng.range(0.03, 0.25);
+            let limits = RayLimits::default();
+            let mut p = Projector::default();
+            let rays = FrameRays::with_camera_rays(&frame, &mut p.camera_rays);
+            p.segments.fill(&rays, &limits, r);
+            if let Some((view, _)) = View::over(&rays, &p.segments, &limits, r, None) {
+                f(&mut rng, &rays, &view, r);
+            }
+        }
+    }
+
     fn walked(frame: &Frame, limits: &RayLimits, r: f64) -> (BTreeSet<VoxelKey>, BTreeSet<VoxelKey>) {
         let rays = FrameRays::new(frame);
         let (mut set, mut ends) = (BTreeSet::new(), BTreeSet::new());
@@ -2031,24 +2048,13 @@ pub(super) mod tests {
     /// the first pixel settles a third of those crossed or more.
     #[test]
     fn a_voxels_first_pixel_changes_no_verdict() {
-        let mut rng = Rng::new(29);
         let (mut verdicts, mut by_first) = ([0usize; 2], 0usize);
-        for _ in 0..40 {
-            let frame = random_frame(&mut rng);
-            let r = rng.range(0.03, 0.25);
-            let limits = RayLimits::default();
-            let mut p = Projector::default();
-            let rays = FrameRays::with_camera_rays(&frame, &mut p.camera_rays);
-            p.segments.fill(&rays, &limits, r);
-            let Some((view, _)) = View::over(&rays, &p.segments, &limits, r, None) else { continue };
+        for_random_views(29, 40, |rng, rays, view, r| {
             for _ in 0..200 {
                 // A voxel on a random pixel's ray: in front of its end, or up to three voxels
                 // behind it.
-                let (u, v) = (
-                    (rng.uniform() * frame.camera.width as f64) as u32,
-                    (rng.uniform() * frame.camera.height as f64) as u32,
-                );
-                let Some(ray) = rays.ray(u, v) else { continue };
+                let (u, v) = (rng.uniform() * view.seg.width as f64, rng.uniform() * view.seg.height as f64);
+                let Some(ray) = rays.ray(u as u32, v as u32) else { continue };
                 let t = if rng.uniform() < 0.5 {
                     rng.range(0.2, 1.0) * ray.range
                 } else {
@@ -2070,7 +2076,7 @@ pub(super) mod tests {
                 by_first +=
                     (inside && view.pixel_crosses(((cu + 0.5) as usize, (cv + 0.5) as usize), &lo, &hi)) as usize;
             }
-        }
+        });
         assert!(verdicts[0] > 1000 && verdicts[1] > 1000 && by_first * 3 > verdicts[1], "{verdicts:?} {by_first}");
     }
 
@@ -2079,17 +2085,10 @@ pub(super) mod tests {
     /// the frames' surfaces (where the exact tests run); and it rules out many.
     #[test]
     fn block_tests_keep_every_pixel_that_crosses() {
-        let mut rng = Rng::new(11);
-        let (mut kept_crossing, mut ruled_out) = ([0usize; 2], [0usize; 2]);
-        for case in 0..60 {
-            let frame = random_frame(&mut rng);
-            let r = rng.range(0.03, 0.25);
-            let limits = RayLimits::default();
-            let mut p = Projector::default();
-            let rays = FrameRays::with_camera_rays(&frame, &mut p.camera_rays);
-            p.segments.fill(&rays, &limits, r);
-            let Some((view, _)) = View::over(&rays, &p.segments, &limits, r, None) else { continue };
-            let seg = &p.segments;
+        let (mut kept_crossing, mut ruled_out, mut case) = ([0usize; 2], [0usize; 2], 0);
+        for_random_views(11, 60, |rng, rays, view, r| {
+            case += 1;
+            let seg = view.seg;
             let (blocks_wide, blocks_high) = (seg.levels[0].width, seg.height.div_ceil(BLOCK));
             for _ in 0..40 {
                 // A voxel near the end of a random pixel's segment.
@@ -2122,7 +2121,7 @@ pub(super) mod tests {
                     }
                 }
             }
-        }
+        });
         assert!(kept_crossing[0] > 1000 && ruled_out[0] > 10 * kept_crossing[0], "{kept_crossing:?} {ruled_out:?}");
         assert!(kept_crossing[1] > 500 && ruled_out[1] > 5 * kept_crossing[1], "{kept_crossing:?} {ruled_out:?}");
     }

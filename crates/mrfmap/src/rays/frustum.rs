@@ -1539,7 +1539,8 @@ impl<'a> View<'a> {
     /// `corners`, of which `near` and `far` are opposite: [`View::box_crossed`], but with the
     /// pixel nearest the middle of those two corners' images tried before the voxel's
     /// footprint is found. Two thirds of the voxels tested are crossed by that pixel, and
-    /// need no footprint (coffin-world at 0.05 m: 0.98x the time of a frame). A pixel whose
+    /// need no footprint (coffin-world at 0.05 m: 0.956x the time of a frame, BENCHMARKS.md,
+    /// session 45). A pixel whose
     /// segment passes through the voxel lies in its footprint (up to rounding where its ray
     /// grazes the voxel's outline, as for [`View::box_crossed`]'s boxes).
     #[inline(always)] // (as `box_crossed`)
@@ -1549,19 +1550,25 @@ impl<'a> View<'a> {
         (near, far): (&Corner, &Corner),
         corners: impl Iterator<Item = &'c Corner> + Clone,
     ) -> bool {
-        let (cu, cv) = ((near.u + far.u) * 0.5, (near.v + far.v) * 0.5);
-        let in_image = cu >= -0.5 && cu < self.u_last + 0.5 && cv >= -0.5 && cv < self.v_last + 0.5;
-        if near.z <= 0.0 || far.z <= 0.0 || !in_image {
-            // (Behind the camera plane the images mean nothing; outside the image, no pixel.)
+        let Some(pixel) = self.first_pixel(near, far) else {
             return self
                 .footprint(corners)
                 .is_some_and(|(rect, depths, _, centre)| self.box_crossed(voxel, &rect, depths, centre));
-        }
+        };
         let (lo, hi) = self.relative(voxel);
-        // (Within half a pixel of the image: the casts round to a pixel inside it.)
-        let pixel = ((cu + 0.5) as u32 as usize, (cv + 0.5) as u32 as usize);
         self.pixel_crosses(pixel, &lo, &hi)
             || self.footprint(corners).is_some_and(|(rect, depths, _, _)| self.pixels_cross(&rect, depths, &lo, &hi))
+    }
+
+    /// The pixel [`View::voxel_crossed`] tries first: the one nearest the middle of the images
+    /// of a voxel's opposite corners `near` and `far`. None when a corner is not in front of
+    /// the camera (the images mean nothing) or the middle is more than half a pixel outside
+    /// the image (no pixel; within half a pixel, the casts round to one inside it).
+    #[inline(always)]
+    fn first_pixel(&self, near: &Corner, far: &Corner) -> Option<(usize, usize)> {
+        let (cu, cv) = ((near.u + far.u) * 0.5, (near.v + far.v) * 0.5);
+        let in_image = cu >= -0.5 && cu < self.u_last + 0.5 && cv >= -0.5 && cv < self.v_last + 0.5;
+        (near.z > 0.0 && far.z > 0.0 && in_image).then_some(((cu + 0.5) as u32 as usize, (cv + 0.5) as u32 as usize))
     }
 
     /// Whether the segment of pixel `(u, v)` passes through the box `lo..hi` (relative to the
@@ -2070,11 +2077,7 @@ pub(super) mod tests {
                 assert_eq!(new, old, "voxel {key:?} at {r} m");
                 verdicts[new as usize] += 1;
                 let (lo, hi) = view.relative(&voxel);
-                let (cu, cv) = ((c[0].u + c[7].u) * 0.5, (c[0].v + c[7].v) * 0.5);
-                let inside =
-                    c[0].z > 0.0 && c[7].z > 0.0 && cu >= 0.0 && cv >= 0.0 && cu < view.u_last && cv < view.v_last;
-                by_first +=
-                    (inside && view.pixel_crosses(((cu + 0.5) as usize, (cv + 0.5) as usize), &lo, &hi)) as usize;
+                by_first += view.first_pixel(&c[0], &c[7]).is_some_and(|p| view.pixel_crosses(p, &lo, &hi)) as usize;
             }
         });
         assert!(verdicts[0] > 1000 && verdicts[1] > 1000 && by_first * 3 > verdicts[1], "{verdicts:?} {by_first}");

@@ -1540,9 +1540,9 @@ impl<'a> View<'a> {
     /// pixel nearest the middle of those two corners' images tried before the voxel's
     /// footprint is found. Two thirds of the voxels tested are crossed by that pixel, and
     /// need no footprint (coffin-world at 0.05 m: 0.956x the time of a frame, BENCHMARKS.md,
-    /// session 45). A pixel whose
-    /// segment passes through the voxel lies in its footprint (up to rounding where its ray
-    /// grazes the voxel's outline, as for [`View::box_crossed`]'s boxes).
+    /// session 45). A pixel whose segment passes through the voxel lies in its footprint (up
+    /// to rounding where its ray grazes the voxel's outline, as for [`View::box_crossed`]'s
+    /// boxes).
     #[inline(always)] // (as `box_crossed`)
     fn voxel_crossed<'c>(
         &self,

@@ -263,7 +263,8 @@ impl FrameRays<'_> {
         mut visit: impl FnMut(usize, &PlainBlock),
     ) -> bool {
         let Some(c) = self.camera_rays else { return false };
-        let (y, depth, rotation, origin) = (c.ys[v as usize], self.frame.depth.row(v), &self.rotation, self.origin);
+        let (y, depth, origin) = (c.ys[v as usize], self.frame.depth.row(v), self.origin);
+        let rotation: [[f64; 3]; 3] = std::array::from_fn(|a| std::array::from_fn(|j| self.rotation[(a, j)]));
         let y2 = y * y;
         let mut b = PlainBlock {
             len: 0,
@@ -272,14 +273,23 @@ impl FrameRays<'_> {
             z_end: [0.0; PLAIN_COLUMNS],
             key: [[0; PLAIN_COLUMNS]; 3],
         };
+        // The block's depths and camera rays copied into arrays of the block's full width,
+        // like the rotation above into locals: the loop below then has a fixed length and
+        // reads nothing its writes might overlap. Over slices of the row, the compiler checked
+        // at run time that the block's arrays overlapped neither, and kept the last 8 columns
+        // out of lanes to stop at the arrays' end (an eighth of the columns, a third of the
+        // loop's time). (A short last block leaves the previous block's values past its
+        // `len`: computed, unused.)
+        let (mut zs, mut xs) = ([0.0f32; PLAIN_COLUMNS], [0.0f64; PLAIN_COLUMNS]);
         for start in (0..depth.len()).step_by(PLAIN_COLUMNS) {
             let stop = (start + PLAIN_COLUMNS).min(depth.len());
-            let (zs, xs) = (&depth[start..stop], &c.xs[start..stop]);
             b.len = stop - start;
+            zs[..b.len].copy_from_slice(&depth[start..stop]);
+            xs[..b.len].copy_from_slice(&c.xs[start..stop]);
             // Every column, valid or not (the invalid ones' values go unused): no branch.
             // The z = 1 norm computed here, not first into a row of norms of its own (two
             // allocations and a pass), and `rotation * unit` as nalgebra sums it.
-            for (k, (&z, &x)) in zs.iter().zip(xs).enumerate() {
+            for (k, (&z, &x)) in zs.iter().zip(&xs).enumerate() {
                 let norm = z1_norm(x, y2);
                 let inv = 1.0 / norm;
                 let r = z as f64 * norm;
@@ -288,7 +298,7 @@ impl FrameRays<'_> {
                 b.z_end[k] = if b.plain[k] { (r * inv) as f32 } else { f32::NEG_INFINITY };
                 let unit = [x * inv, y * inv, inv];
                 for (a, key) in b.key.iter_mut().enumerate() {
-                    let d = rotation[(a, 0)] * unit[0] + rotation[(a, 1)] * unit[1] + rotation[(a, 2)] * unit[2];
+                    let d = rotation[a][0] * unit[0] + rotation[a][1] * unit[1] + rotation[a][2] * unit[2];
                     key[k] = floor_i32_lanes::<FLOOR_INSTRUCTION>((origin[a] + r * d) * scale);
                 }
             }

@@ -273,38 +273,57 @@ impl FrameRays<'_> {
             z_end: [0.0; PLAIN_COLUMNS],
             key: [[0; PLAIN_COLUMNS]; 3],
         };
-        // The block's depths and camera rays copied into arrays of the block's full width,
-        // like the rotation above into locals: the loop below then has a fixed length and
-        // reads nothing its writes might overlap. Over slices of the row, the compiler checked
-        // at run time that the block's arrays overlapped neither, and kept the last 8 columns
-        // out of lanes to stop at the arrays' end (an eighth of the columns, a third of the
-        // loop's time). (A short last block leaves the previous block's values past its
-        // `len`: computed, unused.)
-        let (mut zs, mut xs) = ([0.0f32; PLAIN_COLUMNS], [0.0f64; PLAIN_COLUMNS]);
-        for start in (0..depth.len()).step_by(PLAIN_COLUMNS) {
-            let stop = (start + PLAIN_COLUMNS).min(depth.len());
-            b.len = stop - start;
-            zs[..b.len].copy_from_slice(&depth[start..stop]);
-            xs[..b.len].copy_from_slice(&c.xs[start..stop]);
-            // Every column, valid or not (the invalid ones' values go unused): no branch.
-            // The z = 1 norm computed here, not first into a row of norms of its own (two
-            // allocations and a pass), and `rotation * unit` as nalgebra sums it.
-            for (k, (&z, &x)) in zs.iter().zip(&xs).enumerate() {
-                let norm = z1_norm(x, y2);
-                let inv = 1.0 / norm;
-                let r = z as f64 * norm;
-                b.valid[k] = DepthImage::is_valid(z);
-                b.plain[k] = b.valid[k] & (r <= max_range);
-                b.z_end[k] = if b.plain[k] { (r * inv) as f32 } else { f32::NEG_INFINITY };
-                let unit = [x * inv, y * inv, inv];
-                for (a, key) in b.key.iter_mut().enumerate() {
-                    let d = rotation[a][0] * unit[0] + rotation[a][1] * unit[1] + rotation[a][2] * unit[2];
-                    key[k] = floor_i32_lanes::<FLOOR_INSTRUCTION>((origin[a] + r * d) * scale);
+        row_blocks(
+            depth,
+            &c.xs,
+            #[inline(always)]
+            |start, len, zs, xs| {
+                b.len = len;
+                // Every column, valid or not (the invalid ones' values go unused): no branch.
+                // The z = 1 norm computed here, not first into a row of norms of its own (two
+                // allocations and a pass), and `rotation * unit` as nalgebra sums it.
+                for (k, (&z, &x)) in zs.iter().zip(xs).enumerate() {
+                    let norm = z1_norm(x, y2);
+                    let inv = 1.0 / norm;
+                    let r = z as f64 * norm;
+                    b.valid[k] = DepthImage::is_valid(z);
+                    b.plain[k] = b.valid[k] & (r <= max_range);
+                    b.z_end[k] = if b.plain[k] { (r * inv) as f32 } else { f32::NEG_INFINITY };
+                    let unit = [x * inv, y * inv, inv];
+                    for (a, key) in b.key.iter_mut().enumerate() {
+                        let d = rotation[a][0] * unit[0] + rotation[a][1] * unit[1] + rotation[a][2] * unit[2];
+                        key[k] = floor_i32_lanes::<FLOOR_INSTRUCTION>((origin[a] + r * d) * scale);
+                    }
                 }
-            }
-            visit(start, &b);
-        }
+                visit(start, &b);
+            },
+        );
         true
+    }
+}
+
+/// A row's depths and its columns' camera x (`xs`, [`CameraRays`]) a block of
+/// [`PLAIN_COLUMNS`] at a time, left to right, by `block(first column, columns, depths, xs)`,
+/// each copied into an array of the block's full width (a short last block's arrays hold the
+/// previous block's values past its columns). A loop over those arrays has a fixed length
+/// and reads nothing that its writes to the caller's own arrays might overlap: over slices of
+/// the row, the compiler checked at run time that they overlapped none, and kept the last 8
+/// columns out of lanes so as to stop at the arrays' end (an eighth of the columns, a third
+/// of [`FrameRays::row_plain`]'s time; 0.89x the time of an icl-livingroom1 frame at 0.05 m,
+/// BENCHMARKS.md, session 47). Callers mark `block` `#[inline(always)]`: as a function of
+/// its own it kept none of the processor features of the copy it was called from.
+#[inline(always)]
+fn row_blocks(
+    depth: &[f32],
+    xs: &[f64],
+    mut block: impl FnMut(usize, usize, &[f32; PLAIN_COLUMNS], &[f64; PLAIN_COLUMNS]),
+) {
+    let (mut zs_block, mut xs_block) = ([0.0f32; PLAIN_COLUMNS], [0.0f64; PLAIN_COLUMNS]);
+    for start in (0..depth.len()).step_by(PLAIN_COLUMNS) {
+        let stop = (start + PLAIN_COLUMNS).min(depth.len());
+        zs_block[..stop - start].copy_from_slice(&depth[start..stop]);
+        xs_block[..stop - start].copy_from_slice(&xs[start..stop]);
+        block(start, stop - start, &zs_block, &xs_block);
     }
 }
 
@@ -349,58 +368,63 @@ impl FrameRays<'_> {
     pub(crate) fn row_cut(&self, v: u32, limits: &RayLimits, resolution: f64, ends: &mut [f32]) {
         debug_assert!(limits.bounds.is_none(), "a cut segment with bounds starts past the camera");
         let (Some(c), Some(max_range)) = (self.camera_rays, limits.max_range) else { return };
-        let (y, depth, rotation, origin) = (c.ys[v as usize], self.frame.depth.row(v), &self.rotation, self.origin);
+        let (y, depth, origin) = (c.ys[v as usize], self.frame.depth.row(v), self.origin);
+        let rotation: [[f64; 3]; 3] = std::array::from_fn(|a| std::array::from_fn(|j| self.rotation[(a, j)]));
         let y2 = y * y;
         let mut beyond = [false; PLAIN_COLUMNS];
         let mut inv = [0.0f64; PLAIN_COLUMNS];
         let mut z_cut = [0.0f32; PLAIN_COLUMNS];
         let mut kept = [false; PLAIN_COLUMNS];
-        for start in (0..depth.len()).step_by(PLAIN_COLUMNS) {
-            let stop = (start + PLAIN_COLUMNS).min(depth.len());
-            let (zs, xs) = (&depth[start..stop], &c.xs[start..stop]);
-            for (k, (&z, &x)) in zs.iter().zip(xs).enumerate() {
-                let norm = z1_norm(x, y2);
-                inv[k] = 1.0 / norm;
-                beyond[k] = DepthImage::is_valid(z) && z as f64 * norm > max_range;
-            }
-            let count = beyond[..zs.len()].iter().filter(|&&b| b).count();
-            if count == 0 {
-                continue;
-            }
-            if count < CUT_IN_LANES {
-                for k in (0..zs.len()).filter(|&k| beyond[k]) {
-                    let u = (start + k) as u32;
-                    let seg = self
-                        .ray_of(u, v, zs[k])
-                        .and_then(|ray| Some((limits.hit_miss_segment(&ray, resolution)?, ray.cz)));
-                    if let Some((seg, cz)) = seg {
-                        ends[start + k] = (seg.end * cz) as f32;
+        row_blocks(
+            depth,
+            &c.xs,
+            #[inline(always)]
+            |start, len, zs, xs| {
+                // (The columns past `len` are not beyond.)
+                for (k, (&z, &x)) in zs.iter().zip(xs).enumerate() {
+                    let norm = z1_norm(x, y2);
+                    inv[k] = 1.0 / norm;
+                    beyond[k] = (k < len) & DepthImage::is_valid(z) & (z as f64 * norm > max_range);
+                }
+                let count = beyond.iter().filter(|&&b| b).count();
+                if count == 0 {
+                    return;
+                }
+                if count < CUT_IN_LANES {
+                    for k in (0..len).filter(|&k| beyond[k]) {
+                        let u = (start + k) as u32;
+                        let seg = self
+                            .ray_of(u, v, zs[k])
+                            .and_then(|ray| Some((limits.hit_miss_segment(&ray, resolution)?, ray.cz)));
+                        if let Some((seg, cz)) = seg {
+                            ends[start + k] = (seg.end * cz) as f32;
+                        }
+                    }
+                    return;
+                }
+                // Every column, beyond or not (the others' values go unused): no branch. The cut
+                // end is `max_range` along the ray, pulled back to where the ray enters its voxel.
+                for (k, &x) in xs.iter().enumerate() {
+                    let unit = [x * inv[k], y * inv[k], inv[k]];
+                    let mut enter = f64::NEG_INFINITY;
+                    for a in 0..3 {
+                        let d = rotation[a][0] * unit[0] + rotation[a][1] * unit[1] + rotation[a][2] * unit[2];
+                        let cell = ((origin[a] + max_range * d) / resolution).floor();
+                        let face = if d > 0.0 { cell } else { cell + 1.0 };
+                        let t = (face * resolution - origin[a]) / d;
+                        enter = if d != 0.0 { enter.max(t) } else { enter };
+                    }
+                    let end = max_range.min(enter - 1e-4 * resolution);
+                    z_cut[k] = (end * inv[k]) as f32;
+                    kept[k] = end > 0.0;
+                }
+                for k in 0..len {
+                    if beyond[k] && kept[k] {
+                        ends[start + k] = z_cut[k];
                     }
                 }
-                continue;
-            }
-            // Every column, beyond or not (the others' values go unused): no branch. The cut
-            // end is `max_range` along the ray, pulled back to where the ray enters its voxel.
-            for (k, &x) in xs.iter().enumerate() {
-                let unit = [x * inv[k], y * inv[k], inv[k]];
-                let mut enter = f64::NEG_INFINITY;
-                for a in 0..3 {
-                    let d = rotation[(a, 0)] * unit[0] + rotation[(a, 1)] * unit[1] + rotation[(a, 2)] * unit[2];
-                    let cell = ((origin[a] + max_range * d) / resolution).floor();
-                    let face = if d > 0.0 { cell } else { cell + 1.0 };
-                    let t = (face * resolution - origin[a]) / d;
-                    enter = if d != 0.0 { enter.max(t) } else { enter };
-                }
-                let end = max_range.min(enter - 1e-4 * resolution);
-                z_cut[k] = (end * inv[k]) as f32;
-                kept[k] = end > 0.0;
-            }
-            for k in 0..zs.len() {
-                if beyond[k] && kept[k] {
-                    ends[start + k] = z_cut[k];
-                }
-            }
-        }
+            },
+        );
     }
 }
 

@@ -1764,6 +1764,11 @@ pub(super) mod tests {
     /// A random small camera somewhere in a box, looking at random surfaces, with holes.
     pub(super) fn random_frame(rng: &mut Rng) -> Frame {
         let (w, h) = (rng.range(8.0, 48.0) as u32, rng.range(6.0, 36.0) as u32);
+        random_frame_of(rng, w, h)
+    }
+
+    /// [`random_frame`] of `w x h` pixels.
+    fn random_frame_of(rng: &mut Rng, w: u32, h: u32) -> Frame {
         let f = rng.range(15.0, 60.0);
         let fy = if rng.uniform() < 0.3 { -f * rng.range(0.9, 1.1) } else { f * rng.range(0.9, 1.1) };
         let camera =
@@ -2010,8 +2015,13 @@ pub(super) mod tests {
     #[test]
     fn readings_beyond_the_max_range_cut_in_lanes_are_each_rays_own() {
         let (mut rng, mut rows_in_lanes, mut rows_per_pixel) = (Rng::new(11), 0, 0);
-        for case in 0..40 {
-            let frame = random_frame(&mut rng);
+        // 40 frames narrower than a block of lanes, then 8 of several blocks whose last is
+        // short (its arrays hold the block before's values past its columns: `row_blocks`).
+        for case in 0..48 {
+            let frame = match case {
+                0..40 => random_frame(&mut rng),
+                _ => random_frame_of(&mut rng, 2 * PLAIN_COLUMNS as u32 + 1 + case, 6),
+            };
             let r = rng.range(0.01, 0.25);
             let limits = RayLimits { max_range: Some(rng.range(0.2, 3.0)), bounds: None };
             let mut cache = CameraRays::default();

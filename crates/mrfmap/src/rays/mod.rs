@@ -264,7 +264,7 @@ impl FrameRays<'_> {
     ) -> bool {
         let Some(c) = self.camera_rays else { return false };
         let (y, depth, origin) = (c.ys[v as usize], self.frame.depth.row(v), self.origin);
-        let rotation: [[f64; 3]; 3] = std::array::from_fn(|a| std::array::from_fn(|j| self.rotation[(a, j)]));
+        let rotation = self.rotation_rows();
         let y2 = y * y;
         let mut b = PlainBlock {
             len: 0,
@@ -299,6 +299,15 @@ impl FrameRays<'_> {
             },
         );
         true
+    }
+}
+
+impl FrameRays<'_> {
+    /// The rotation's rows as plain arrays, for the lane loops of [`row_blocks`]' callers: a
+    /// local copy, which their writes cannot overlap.
+    #[inline(always)]
+    fn rotation_rows(&self) -> [[f64; 3]; 3] {
+        std::array::from_fn(|a| std::array::from_fn(|j| self.rotation[(a, j)]))
     }
 }
 
@@ -369,7 +378,7 @@ impl FrameRays<'_> {
         debug_assert!(limits.bounds.is_none(), "a cut segment with bounds starts past the camera");
         let (Some(c), Some(max_range)) = (self.camera_rays, limits.max_range) else { return };
         let (y, depth, origin) = (c.ys[v as usize], self.frame.depth.row(v), self.origin);
-        let rotation: [[f64; 3]; 3] = std::array::from_fn(|a| std::array::from_fn(|j| self.rotation[(a, j)]));
+        let rotation = self.rotation_rows();
         let y2 = y * y;
         let mut beyond = [false; PLAIN_COLUMNS];
         let mut inv = [0.0f64; PLAIN_COLUMNS];

@@ -713,7 +713,12 @@ macro_rules! split_voxels {
                 let half = (b.hi[0] - b.lo[0]) / 2;
                 let settled_or_surface: SlotMask = std::array::from_fn(|w| settled[w] | surface[w]);
                 let origin = self.corner_at(b.lo);
-                let step = self.step.map(|s| s.map(|c| c * half as f64));
+                // (Loops, not `map` with a closure: the compiler may leave a closure a function
+                // of its own, outside the processor copy, and did once, called per axis.)
+                let mut step = self.step;
+                for c in step.iter_mut().flatten() {
+                    *c *= half as f64;
+                }
                 // Corner (i, j, k) of the 3 x 3 x 3 lattice is `lattice[i + 3 j + 9 k]` (nested loops:
                 // the index arithmetic of one loop over 27 was a twentieth of a projected frame).
                 let mut lattice = [Corner::default(); 27];

@@ -291,7 +291,7 @@ impl FrameRays<'_> {
                     b.z_end[k] = if b.plain[k] { (r * inv) as f32 } else { f32::NEG_INFINITY };
                     let unit = [x * inv, y * inv, inv];
                     for (a, key) in b.key.iter_mut().enumerate() {
-                        let d = rotation[a][0] * unit[0] + rotation[a][1] * unit[1] + rotation[a][2] * unit[2];
+                        let d = row_times(&rotation[a], &unit);
                         key[k] = floor_i32_lanes::<FLOOR_INSTRUCTION>((origin[a] + r * d) * scale);
                     }
                 }
@@ -304,11 +304,19 @@ impl FrameRays<'_> {
 
 impl FrameRays<'_> {
     /// The rotation's rows as plain arrays, for the lane loops of [`row_blocks`]' callers: a
-    /// local copy, which their writes cannot overlap.
+    /// local copy, which their writes cannot overlap. Component `a` of `rotation * v` is then
+    /// [`row_times`] of row `a`.
     #[inline(always)]
     fn rotation_rows(&self) -> [[f64; 3]; 3] {
         std::array::from_fn(|a| std::array::from_fn(|j| self.rotation[(a, j)]))
     }
+}
+
+/// A matrix row times a vector, summed in the order nalgebra sums `matrix * vector` (the lane
+/// loops' values are the per-pixel rays' bit for bit).
+#[inline(always)]
+fn row_times(row: &[f64; 3], v: &[f64; 3]) -> f64 {
+    row[0] * v[0] + row[1] * v[1] + row[2] * v[2]
 }
 
 /// A row's depths and its columns' camera x (`xs`, [`CameraRays`]) a block of
@@ -417,7 +425,7 @@ impl FrameRays<'_> {
                     let unit = [x * inv[k], y * inv[k], inv[k]];
                     let mut enter = f64::NEG_INFINITY;
                     for a in 0..3 {
-                        let d = rotation[a][0] * unit[0] + rotation[a][1] * unit[1] + rotation[a][2] * unit[2];
+                        let d = row_times(&rotation[a], &unit);
                         let cell = ((origin[a] + max_range * d) / resolution).floor();
                         let face = if d > 0.0 { cell } else { cell + 1.0 };
                         let t = (face * resolution - origin[a]) / d;

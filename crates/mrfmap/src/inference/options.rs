@@ -121,7 +121,6 @@ impl BuildOptions {
                 min_evidence: self.min_evidence,
             },
             crm: CrmParams { particles: self.particles },
-            camera: None,
         })
     }
 }

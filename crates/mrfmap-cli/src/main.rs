@@ -147,7 +147,12 @@ fn main() {
         // ahead, a bag's reading threads) never needs the pool to finish. (0 threads: rayon's
         // default, RAYON_NUM_THREADS or one per core.)
         let threads = cli.threads.map_or(0, |n| n as usize);
-        rayon::ThreadPoolBuilder::new().num_threads(threads).use_current_thread().build_global()?;
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .use_current_thread()
+            // (Known to `placement` from the first frame: BENCHMARKS.md, session 48.)
+            .start_handler(|_| mrfmap::placement::register_thread())
+            .build_global()?;
         match cli.command {
             Command::Build(a) => commands::build::run(a),
             #[cfg(feature = "bags")]

@@ -909,6 +909,7 @@ impl BuildSpec {
         py.detach(|| match self.threads {
             Some(n) => rayon::ThreadPoolBuilder::new()
                 .num_threads(n.max(1))
+                .start_handler(|_| mrfmap::placement::register_thread())
                 .build()
                 .map_err(|e| mrfmap::Error::Invalid(format!("threads: {e}")))?
                 .install(work),

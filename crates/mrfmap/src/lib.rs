@@ -45,6 +45,7 @@ pub mod limits;
 pub mod map;
 pub mod outputs;
 pub mod pipeline;
+pub mod placement;
 pub mod random;
 pub mod rays;
 pub mod source;

@@ -49,6 +49,7 @@ use super::{CameraRays, FrameRays, PLAIN_COLUMNS, PixelRay, PlainBlock, RayLimit
 use crate::frames::{Camera, DepthImage, Frame};
 use crate::map::{Aabb, box_keys};
 use crate::map::{BRICK_EDGE, BrickKey, SlotMask, VoxelKey, floor_i32, mask_has, mask_set, mask_slots};
+use crate::placement::Step;
 use rustc_hash::FxHashMap;
 
 mod centres;
@@ -146,7 +147,9 @@ impl Projector {
         settled: Option<&(dyn Fn(BrickKey) -> SlotMask + Sync)>,
     ) -> CrossedVoxels {
         let rays = FrameRays::with_camera_rays(frame, &mut self.camera_rays);
-        let ends = self.segments.fill(&rays, limits, resolution);
+        // (The two largest parallel steps are watched for a worker left waiting behind this
+        // thread: `placement`.)
+        let ends = self.segments.fill(&rays, limits, resolution, &Step::start());
         let Some((view, root)) = View::over(&rays, &self.segments, limits, resolution, keep) else {
             return CrossedVoxels::default();
         };
@@ -176,7 +179,9 @@ impl Projector {
                 }
                 big
             });
+        let step = Step::start();
         crossed.par_extend(undecided.into_par_iter().filter_map(|(brick, footprint)| {
+            step.job();
             let mut mask = [0u64; 8];
             let surface = ends_by_brick.get(&brick).copied().unwrap_or_default();
             // (A surface is never left open: its voxel is a hit.)
@@ -386,12 +391,13 @@ impl Segments {
     /// measured surfaces, a list per block of rows ([`Segments::fill_with`]). Each row runs
     /// in [`segments_row_avx512`] on a processor with AVX-512, in [`segments_row_avx2`] on
     /// one with AVX2.
-    fn fill(&mut self, rays: &FrameRays, limits: &RayLimits, resolution: f64) -> Vec<Vec<VoxelKey>> {
+    fn fill(&mut self, rays: &FrameRays, limits: &RayLimits, resolution: f64, step: &Step) -> Vec<Vec<VoxelKey>> {
         #[cfg(target_arch = "x86_64")]
         let avx2 = std::is_x86_feature_detected!("avx2");
         #[cfg(target_arch = "x86_64")]
         let avx512 = has_avx512();
         self.fill_with(rays.size(), limits.bounds.is_some(), |v, pixels, ends, above| {
+            step.job();
             let cut = limits.bounds.is_none() && limits.max_range.is_some_and(|m| rays.row_may_cut(v as u32, m));
             #[cfg(target_arch = "x86_64")]
             if avx512 {
@@ -1838,7 +1844,7 @@ pub(super) mod tests {
             let limits = RayLimits::default();
             let mut p = Projector::default();
             let rays = FrameRays::with_camera_rays(&frame, &mut p.camera_rays);
-            p.segments.fill(&rays, &limits, r);
+            p.segments.fill(&rays, &limits, r, &Step::start());
             if let Some((view, _)) = View::over(&rays, &p.segments, &limits, r, None) {
                 f(&mut rng, &rays, &view, r);
             }
@@ -1888,7 +1894,7 @@ pub(super) mod tests {
     /// leaves undecided (nothing if no pixel has a segment).
     fn with_undecided(rays: &FrameRays, limits: &RayLimits, r: f64, f: impl FnOnce(&View, Vec<(BrickKey, Footprint)>)) {
         let mut seg = Segments::default();
-        seg.fill(rays, limits, r);
+        seg.fill(rays, limits, r, &Step::start());
         let Some((view, root)) = View::over(rays, &seg, limits, r, None) else { return };
         let (mut crossed, mut undecided) = (Vec::new(), Vec::new());
         view.split_bricks(root, &mut crossed, &mut undecided);

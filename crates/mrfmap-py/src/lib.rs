@@ -941,11 +941,9 @@ fn build_dataset(py: Python<'_>, dataset: PathBuf, options: Option<&Bound<'_, Py
         // Refused before any work, as `mrfmap build` refuses (MemoryError).
         let advice = "use a coarser resolution, or map less with bounds or max_range";
         check_build(&spec.config, dataset_extent(&spec.dataset, &all, &spec.config)?, MapOutput::InMemory, advice)?;
-        read_ahead(
-            &all,
-            |i| spec.dataset.frame(i),
-            |frames| build(&spec.config, frames, Some(all.len()), &mut (), None),
-        )
+        // (The dataset's camera is known before its first frame: the engine is readied for it.)
+        let config = EngineConfig { camera: Some(*spec.dataset.camera()), ..spec.config };
+        read_ahead(&all, |i| spec.dataset.frame(i), |frames| build(&config, frames, Some(all.len()), &mut (), None))
     })?;
     Ok(PyMap { map: report.map })
 }

@@ -195,10 +195,12 @@ pub fn run(a: Args) -> Result<()> {
     }
     let mut snapshots = a.snapshots.snapshots()?;
     // Depth frames, from a dataset or a bag, go through one of the two loops.
-    let mut frames_build = |readings: &mut Readings<'_, Frame>, count: Option<usize>| match online {
-        Some(o) => build_online_with(readings, count, &config, o, snapshots.take()),
-        None => Ok(build_engine(&config, readings, count, &mut Bars::default(), snapshots.take())?),
-    };
+    // (`config` as a parameter: a dataset's, which knows its camera before the first frame.)
+    let mut frames_build =
+        |readings: &mut Readings<'_, Frame>, count: Option<usize>, config: &EngineConfig| match online {
+            Some(o) => build_online_with(readings, count, config, o, snapshots.take()),
+            None => Ok(build_engine(config, readings, count, &mut Bars::default(), snapshots.take())?),
+        };
     let mut up = None;
     let (report, indices_used) = if let (true, Some(topic)) = (BagArgs::is_bag(&a.dataset), &a.bag.scan_topic) {
         let mut scans = a.bag.scans(&a.dataset, topic, a.options.noise.as_deref())?;
@@ -237,7 +239,12 @@ pub fn run(a: Args) -> Result<()> {
             a.resolution
         );
         up = dataset.up();
-        let built = read_ahead(&indices, |i| dataset.frame(i), |readings| frames_build(readings, Some(indices.len())))?;
+        let config = EngineConfig { camera: Some(*dataset.camera()), ..config };
+        let built = read_ahead(
+            &indices,
+            |i| dataset.frame(i),
+            |readings| frames_build(readings, Some(indices.len()), &config),
+        )?;
         (built, indices)
     };
     // What went in, so `eval` can tell held-out views from views the map was built from.

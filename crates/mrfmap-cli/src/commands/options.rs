@@ -315,7 +315,7 @@ impl BagArgs {
         {
             let (options, noise) = self.depth_options(noise)?;
             let (report, used) = stream_bag(path, options, noise, pick, (config, MapOutput::Saved), |frames| {
-                build(frames, None).map_err(|e| mrfmap::Error::Invalid(format!("{e:#}")))
+                build(frames, None, config).map_err(|e| mrfmap::Error::Invalid(format!("{e:#}")))
             })?;
             Ok((report, used))
         }
@@ -340,8 +340,9 @@ impl BagArgs {
     }
 }
 
-/// A build from frames as they come, each with its index, and how many will come if known.
-pub type FrameBuild<'a> = dyn FnMut(&mut Readings<'_, Frame>, Option<usize>) -> Result<Built> + 'a;
+/// A build from frames as they come, each with its index, and how many will come if known,
+/// with this engine configuration.
+pub type FrameBuild<'a> = dyn FnMut(&mut Readings<'_, Frame>, Option<usize>, &EngineConfig) -> Result<Built> + 'a;
 
 /// The error for a bag given to a binary built without the `bags` feature (`_unused`: the
 /// arguments only a bag reader would read).

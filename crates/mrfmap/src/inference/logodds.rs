@@ -23,7 +23,7 @@ use rustc_hash::FxHashMap;
 
 use super::{Engine, SavedMap, logit, sigmoid};
 use crate::error::{Error, Result};
-use crate::frames::{Frame, RangeScan};
+use crate::frames::{Camera, Frame, RangeScan};
 use crate::map::{Aabb, BrickKey, BrickList, Grid, Map, MapVoxel, SlotMask, VoxelKey, box_keys};
 use crate::rays::{CrossedVoxels, PixelRay, Projector, RayLimits, Rays, for_each_crossing};
 
@@ -350,6 +350,12 @@ impl Engine for LogOddsEngine {
 
     fn resolution(&self) -> f64 {
         self.grid.resolution()
+    }
+
+    fn prepare(&mut self, camera: &Camera) {
+        if let (SensorModel::HitMiss { .. }, Marking::Project) = (self.params.model, self.params.marking) {
+            self.projector.prepare(camera, self.limits.bounds.is_some());
+        }
     }
 
     fn integrate(&mut self, frame: &Frame) -> Result<()> {
@@ -685,7 +691,9 @@ mod tests {
     /// free space to reach the clamp builds, bit for bit, the map of projections that test
     /// every voxel; and some bricks were left open. (A miss that raises the log-odds, p_miss
     /// above 0.5, settles nothing: the same comparison holds for it too.) The engine's record of
-    /// the voxels at the clamp is the grid's after every frame.
+    /// the voxels at the clamp is the grid's after every frame. (The engine that leaves voxels
+    /// open is also readied for the camera before its first frame, [`Engine::prepare`]; the
+    /// other is not.)
     #[test]
     fn voxels_at_the_lower_clamp_left_open_change_nothing() {
         for p_miss in [0.4, 0.6] {
@@ -693,6 +701,7 @@ mod tests {
             let limits = RayLimits { max_range: Some(2.5), bounds: None };
             let (mut fast, mut full) =
                 (LogOddsEngine::new(0.05, limits, params).unwrap(), LogOddsEngine::new(0.05, limits, params).unwrap());
+            fast.prepare(&Camera::new(100.0, 100.0, 31.5, 23.5, 64, 48, 5000.0).unwrap());
             let mut open = 0;
             for i in 0..12 {
                 // A slanted, bumpy wall seen from a camera that moves a little, with pixels small

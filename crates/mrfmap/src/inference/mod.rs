@@ -48,7 +48,7 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 use crate::error::{Error, Result};
-use crate::frames::{Frame, RangeScan};
+use crate::frames::{Camera, Frame, RangeScan};
 use crate::map::{Map, MapVoxel, VoxelKey};
 use crate::rays::RayLimits;
 
@@ -72,6 +72,14 @@ pub trait Engine: Send + Sync {
     }
     /// Voxel edge in metres.
     fn resolution(&self) -> f64;
+    /// Makes ready for depth frames from `camera` before the first comes: the log-odds
+    /// engine sizes its per-pixel buffers for the camera's images, which the first frame's
+    /// integration would otherwise make (a fifth of it at 640 x 480), as a mapper that knows
+    /// its camera does at start-up. Frames from another camera still work. The others have
+    /// nothing to ready.
+    fn prepare(&mut self, camera: &Camera) {
+        let _ = camera;
+    }
     /// Adds one frame's evidence.
     fn integrate(&mut self, frame: &Frame) -> Result<()>;
     /// Adds one range scan's evidence (planar lasers, lidars). Engines that work on depth
@@ -146,6 +154,10 @@ pub struct EngineConfig {
     pub mrf: MrfParams,
     /// Parameters of the CRM engine (ignored by the others).
     pub crm: CrmParams,
+    /// The camera the depth frames will come from, when it is known before the first (a
+    /// dataset's `camera.toml`): the engine is made ready for its images
+    /// ([`Engine::prepare`]). `None` (the default): ready when the first frame comes.
+    pub camera: Option<Camera>,
 }
 
 impl EngineConfig {
@@ -158,6 +170,7 @@ impl EngineConfig {
             logodds: LogOddsParams::default(),
             mrf: MrfParams::default(),
             crm: CrmParams::default(),
+            camera: None,
         }
     }
 }
@@ -172,9 +185,13 @@ impl EngineConfig {
 /// ```
 pub fn new_engine(config: &EngineConfig) -> Result<Box<dyn Engine>> {
     config.limits.validate()?;
-    Ok(match config.kind {
+    let mut engine: Box<dyn Engine> = match config.kind {
         EngineKind::LogOdds => Box::new(LogOddsEngine::new(config.resolution, config.limits, config.logodds)?),
         EngineKind::Mrf => Box::new(MrfEngine::new(config.resolution, config.limits, config.mrf)?),
         EngineKind::Crm => Box::new(CrmEngine::new(config.resolution, config.limits, config.crm)?),
-    })
+    };
+    if let Some(camera) = &config.camera {
+        engine.prepare(camera);
+    }
+    Ok(engine)
 }

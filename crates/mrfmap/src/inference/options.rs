@@ -121,6 +121,7 @@ impl BuildOptions {
                 min_evidence: self.min_evidence,
             },
             crm: CrmParams { particles: self.particles },
+            camera: None,
         })
     }
 }

@@ -97,6 +97,16 @@ pub struct Projector {
 }
 
 impl Projector {
+    /// Sizes the per-pixel buffers for the images of `camera`, with or without ray bounds
+    /// ([`RayLimits::bounds`]), before the first frame: a mapper that knows its camera makes
+    /// them at start-up instead of in its first frame's integration (as wavemap makes its
+    /// range images when its integrator is made). Buffers for another size are made when a
+    /// frame of that size comes.
+    pub fn prepare(&mut self, camera: &Camera, bounds: bool) {
+        self.camera_rays.update(camera);
+        self.segments.shape((camera.width as usize, camera.height as usize), bounds);
+    }
+
     /// Whether projection is expected to beat walking every ray for `frame`: not when most
     /// of its depths lie beyond the distance where voxels shrink below a pixel (there rays
     /// are sparser than voxels, and projection ends up walking them anyway, with overhead).
@@ -437,23 +447,13 @@ impl Segments {
     where
         F: Fn(usize, PixelRow<'_>, &mut Vec<VoxelKey>, &mut AboveEnds) + Sync,
     {
-        (self.width, self.height) = (width, height);
-        // Every pixel is written below, so only a change of size needs new buffers.
-        self.ends.resize(width * height, f32::NEG_INFINITY);
-        if starts {
-            self.starts.resize(width * height, f32::INFINITY);
-        } else {
-            self.starts = Vec::new();
-        }
+        self.shape((width, height), starts);
         let start_chunks: Vec<Option<&mut [f32]>> = if starts {
             self.starts.chunks_mut(BLOCK * width).map(Some).collect()
         } else {
             (0..height.div_ceil(BLOCK)).map(|_| None).collect()
         };
-        self.levels.resize_with(self.levels.len().max(1), Level::default);
         let blocks = &mut self.levels[0];
-        blocks.width = width.div_ceil(BLOCK);
-        blocks.cells.resize(blocks.width * height.div_ceil(BLOCK), Bounds::NO_SEGMENT);
         // `BLOCK` rows at a time, so each task also makes its row of blocks while the rows are
         // in cache (as a separate pass it cost as much as a tenth of the setup): two rows of
         // 2 x 2 blocks first (in a buffer of the task's), then the row of 4 x 4 ones.
@@ -562,23 +562,44 @@ impl Segments {
     /// Levels 3, 4, ... of the min/max pyramid, down to one block (reusing the previous
     /// frame's buffers).
     fn build_pyramid(&mut self) {
-        let (mut k, mut h) = (0, self.height.div_ceil(BLOCK));
-        while self.levels[k].width > 1 || h > 1 {
-            if self.levels.len() == k + 1 {
-                self.levels.push(Level::default());
-            }
-            let (lower, upper) = self.levels.split_at_mut(k + 1);
-            let (prev, next) = (&lower[k], &mut upper[0]);
-            let (w, nw, nh) = (prev.width, prev.width.div_ceil(2), h.div_ceil(2));
-            next.width = nw;
-            next.cells.resize(nw * nh, Bounds::NO_SEGMENT);
-            next.cells.par_chunks_mut(nw).zip(prev.cells.par_chunks(2 * w)).for_each(|(row, pair)| {
+        for k in 1..self.levels.len() {
+            let (lower, upper) = self.levels.split_at_mut(k);
+            let (prev, next) = (&lower[k - 1], &mut upper[0]);
+            let w = prev.width;
+            next.cells.par_chunks_mut(next.width).zip(prev.cells.par_chunks(2 * w)).for_each(|(row, pair)| {
                 let (upper, lower) = pair.split_at(w);
                 let lower = if lower.is_empty() { upper } else { lower };
                 reduce_rows(w, |x| upper[x], |x| lower[x], row);
             });
-            h = nh;
-            k += 1;
+        }
+    }
+
+    /// Sizes the buffers for an image of `width x height` pixels, with or without `starts`:
+    /// the pixels' depths, and the pyramid's levels from blocks of [`BLOCK`] x [`BLOCK`]
+    /// pixels halving down to one cell. Each frame's filling writes every value, so only a
+    /// new size allocates (and the pages of a new buffer are first touched here, not in the
+    /// middle of a frame: zeroing them on each page fault took a fifth of a first frame at
+    /// 640 x 480, BENCHMARKS.md, session 48).
+    fn shape(&mut self, (width, height): (usize, usize), starts: bool) {
+        (self.width, self.height) = (width, height);
+        self.ends.resize(width * height, f32::NEG_INFINITY);
+        if starts {
+            self.starts.resize(width * height, f32::INFINITY);
+        } else {
+            self.starts = Vec::new();
+        }
+        let (mut k, mut w, mut h) = (0, width.div_ceil(BLOCK), height.div_ceil(BLOCK));
+        loop {
+            if self.levels.len() == k {
+                self.levels.push(Level::default());
+            }
+            let level = &mut self.levels[k];
+            level.width = w;
+            level.cells.resize(w * h, Bounds::NO_SEGMENT);
+            if w <= 1 && h <= 1 {
+                break;
+            }
+            (k, w, h) = (k + 1, w.div_ceil(2), h.div_ceil(2));
         }
         self.levels.truncate(k + 1);
     }
@@ -2014,6 +2035,41 @@ pub(super) mod tests {
             return;
         }
         eprintln!("skipped: this processor has no AVX2, only the baseline copy runs");
+    }
+
+    /// A projector readied for a frame's camera ([`Projector::prepare`]), or for another
+    /// camera, finds what a fresh one finds, and readying gives its buffers the shapes the
+    /// frame's filling gives them (so that the filling allocates nothing).
+    #[test]
+    fn a_prepared_projector_finds_what_a_fresh_one_finds() {
+        let mut rng = Rng::new(23);
+        let sorted = |mut c: CrossedVoxels| {
+            c.crossed.sort_by_key(|(k, _)| k.0);
+            c.ends.sort_by_key(|(k, _)| k.0);
+            (c.crossed, c.ends)
+        };
+        let shapes = |p: &Projector| {
+            let seg = &p.segments;
+            let levels: Vec<(usize, usize)> = seg.levels.iter().map(|l| (l.width, l.cells.len())).collect();
+            (seg.width, seg.height, seg.ends.len(), seg.starts.len(), levels)
+        };
+        for case in 0..30 {
+            let frame = random_frame(&mut rng);
+            let (limits, r) = (random_limits(case, &mut rng), rng.range(0.03, 0.25));
+            let bounds = limits.bounds.is_some();
+            let fresh = || Projector::default();
+            let mut found = fresh();
+            let expected = sorted(found.crossed_voxels(&frame, &limits, r, None, None));
+            let mut ready = fresh();
+            ready.prepare(&frame.camera, bounds);
+            assert_eq!(shapes(&ready), shapes(&found), "case {case}: readied as the frame leaves them");
+            assert_eq!(sorted(ready.crossed_voxels(&frame, &limits, r, None, None)), expected, "case {case}");
+            let c = &frame.camera;
+            let other = Camera::new(c.fx, c.fy, c.cx, c.cy, c.width + 5, c.height + 3, c.depth_scale).unwrap();
+            let mut elsewhere = fresh();
+            elsewhere.prepare(&other, !bounds);
+            assert_eq!(sorted(elsewhere.crossed_voxels(&frame, &limits, r, None, None)), expected, "case {case}");
+        }
     }
 
     /// A row's filling, as [`Segments::fill_with`] takes it.

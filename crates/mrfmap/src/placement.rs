@@ -25,11 +25,14 @@ use std::sync::Mutex;
 use std::sync::atomic::{AtomicBool, Ordering::Relaxed};
 use std::time::{Duration, Instant};
 
-/// How long a step runs before its starter moves workers that have not run: long enough for
-/// a worker woken onto an idle core to have started (tens of microseconds), short beside a
-/// scheduler tick. (40, 150 and 500 us measured alike on icl-livingroom-5 at 0.05 m on two
-/// threads: 0.91, 0.89 and 0.90 of the time of a frame without, 12 pairs each.)
-pub const WAIT: Duration = Duration::from_micros(150);
+/// How long a step runs before its starter moves workers that have not run: about a
+/// scheduler slice (0.75 ms and more), within which a worker woken onto a busy core usually
+/// gets it, and short beside a tick (4 ms). Measured on icl-livingroom-5 at 0.05 m on two
+/// threads against no moves (BENCHMARKS.md, session 48): 1 ms took 0.83-0.92 of the time of a
+/// frame with the release build and 0.94 with the installed (LTO) one; 0.15 and 0.5 ms helped
+/// the first as much and made the second slower (1.06-1.12, moves made where the worker was
+/// about to run, onto the core decoding the next frame), 2 ms helped either less.
+pub const WAIT: Duration = Duration::from_millis(1);
 
 /// The thread ids of the pool's workers by their index, as they recorded them.
 static THREADS: Mutex<Vec<Option<sys::Tid>>> = Mutex::new(Vec::new());
@@ -56,7 +59,7 @@ pub struct Step {
     /// pool, or not Linux).
     starter: Option<usize>,
     start: Instant,
-    /// Per worker index: it has run a job of this step, or has been moved.
+    /// Per worker index: whether it has run a job of this step, and whether it was moved.
     ran: Box<[AtomicBool]>,
     moved: Box<[AtomicBool]>,
     /// The workers' thread ids when the step started.

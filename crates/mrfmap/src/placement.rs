@@ -74,12 +74,13 @@ impl Step {
         if let Some(i) = starter {
             record(i, sys::current());
         }
-        let threads = match starter {
-            Some(_) => THREADS.lock().unwrap_or_else(|e| e.into_inner()).iter().take(n).copied().collect(),
-            None => Vec::new(),
+        // (Nothing to watch: no flags, no ids.)
+        let (watched, threads) = match starter {
+            Some(_) => (n, THREADS.lock().unwrap_or_else(|e| e.into_inner()).iter().take(n).copied().collect()),
+            None => (0, Vec::new()),
         };
-        let flags = |k: usize| (0..k).map(|_| AtomicBool::new(false)).collect();
-        Step { starter, start: Instant::now(), ran: flags(n), moved: flags(n), threads }
+        let flags = || (0..watched).map(|_| AtomicBool::new(false)).collect();
+        Step { starter, start: Instant::now(), ran: flags(), moved: flags(), threads }
     }
 
     /// To be called at the start of each of the step's jobs, on the thread running it.

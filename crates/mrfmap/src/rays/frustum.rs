@@ -1,7 +1,7 @@
 //! Which voxels the rays of a depth image cross, found by projecting boxes of voxels into the
 //! image instead of walking every ray.
 //!
-//! Walking each ray ([`for_each_crossing`]) visits a voxel once for every ray that crosses
+//! Walking each ray ([`for_each_crossing`](super::for_each_crossing)) visits a voxel once for every ray that crosses
 //! it, and near the camera a voxel is crossed by hundreds of rays of one frame.
 //! [`Projector::crossed_voxels`] gives the same set of voxels with work that grows with the
 //! number of voxels instead:
@@ -29,7 +29,8 @@
 //! 4. Undecided bricks that few pixels see, or that lie where voxels are smaller than a pixel
 //!    (so no box can be decided whole), have their rays walked within the brick instead;
 //!    blocks of pixels and pixels whose depths or directions miss the brick are ruled out
-//!    first by the same bounds ([`View::walk_brick`]).
+//!    first by the same bounds, and the rays left are set up four at a time
+//!    ([`View::walk_brick`]).
 //!
 //! A caller may leave voxels open ([`Projector::crossed_voxels`]'s `settled`: those whose
 //! crossing would change nothing for it): they get no test, and a brick of them is skipped.
@@ -45,7 +46,8 @@ use rayon::prelude::*;
 
 use std::ops::ControlFlow;
 
-use super::{CameraRays, FrameRays, PLAIN_COLUMNS, PixelRay, PlainBlock, RayLimits, for_each_crossing};
+use super::traversal::mark_in_brick;
+use super::{CameraRays, FrameRays, PLAIN_COLUMNS, PixelRay, PlainBlock, RayLimits};
 use crate::frames::{Camera, DepthImage, Frame};
 use crate::map::{Aabb, box_keys};
 use crate::map::{BRICK_EDGE, BrickKey, SlotMask, VoxelKey, floor_i32, mask_has, mask_set, mask_slots};
@@ -203,7 +205,7 @@ impl Projector {
                 return None;
             }
             if footprint.rect.area() <= WALK_MAX_PIXELS || !footprint.dense {
-                mask = view.walk_brick(&rays, limits, brick, &footprint);
+                mask = view.walk_brick(brick, &footprint);
             } else {
                 view.split_voxels(Box3::of_brick(brick), &surface, &open, &mut mask);
             }
@@ -816,34 +818,29 @@ split_voxels!(
 );
 
 /// Defines under `$name` [`View::walk_brick`]'s work, in one source for the copy built for
-/// the binary's baseline and the copy built for AVX2 (where `floor` is one instruction, not
-/// a call, and the rays' setup is inlined): 0.94x the time of a coffin-world frame at 0.02 m.
+/// the binary's baseline and the copy built for AVX2 (where a block's row of rays is set up
+/// in four lanes, and `floor` is one instruction, not a call).
 macro_rules! walk_brick {
     ($(#[$attr:meta])* $name:ident) => {
         impl View<'_> {
             $(#[$attr])*
-            fn $name(&self, rays: &FrameRays, limits: &RayLimits, brick: BrickKey, fp: &Footprint) -> SlotMask {
-                let (r, rect, mut mask, b) = (self.resolution, &fp.rect, [0u64; 8], Box3::of_brick(brick));
-                let ((lo, hi), bounds) = (self.relative(&b), b.aabb(r));
+            fn $name(&self, brick: BrickKey, fp: &Footprint) -> SlotMask {
+                let (rect, mut mask, b) = (&fp.rect, [0u64; 8], Box3::of_brick(brick));
+                let (lo, hi) = self.relative(&b);
                 let ((z_near, z_far), widen) = (fp.depths, WIDEN as f32);
                 let (z_near, z_far) = (z_near - z_near.abs() * widen, z_far + z_far.abs() * widen);
+                let walk = self.brick_walk(&b);
                 let (seg, width) = (self.seg, self.seg.width);
                 let _ = self.blocks_reaching(rect, (z_near, z_far), &lo, &hi, #[inline(always)] |(u0, u1), v| {
-                    for u in u0..u1 {
-                        if seg.pixel(v * width + u).miss(z_near, z_far) {
-                            continue;
+                    let mut lanes = [PixelDepths::NONE; BLOCK];
+                    for (j, lane) in lanes[..u1 - u0].iter_mut().enumerate() {
+                        let p = seg.pixel(v * width + u0 + j);
+                        if !p.miss(z_near, z_far) {
+                            *lane = p;
                         }
-                        let Some(ray) = rays.ray(u as u32, v as u32) else { continue };
-                        let Some(seg) = limits.hit_miss_segment(&ray, r) else { continue };
-                        let Some((a, b)) = bounds.clip(ray.origin, ray.dir, seg.start, seg.end) else { continue };
-                        for_each_crossing(ray.origin, ray.dir, a, b, r, |c| {
-                            // The clipped ends lie on the brick's faces: rounding may put a
-                            // neighbour's voxel at either end.
-                            if c.key.brick() == brick {
-                                mask_set(&mut mask, c.key.slot());
-                            }
-                            ControlFlow::Continue(())
-                        });
+                    }
+                    if lanes.iter().any(|p| p.0[0] <= p.0[1]) {
+                        self.walk_pixels(&walk, (u0, v), &lanes, &mut mask);
                     }
                     ControlFlow::Continue(())
                 });
@@ -1093,6 +1090,15 @@ struct Footprint {
     centre: Option<[f32; 2]>,
 }
 
+/// A brick as [`View::walk_pixels`] walks rays through it (see [`View::brick_walk`]).
+struct BrickWalk {
+    /// The camera relative to the brick's lower corner.
+    origin: [f64; 3],
+    /// The box the walks are clipped to, relative to the camera.
+    lo: [f64; 3],
+    hi: [f64; 3],
+}
+
 /// A box of voxels: keys `lo..hi` per axis (half-open).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 struct Box3 {
@@ -1184,6 +1190,8 @@ struct View<'a> {
     dense_range2: f64,
     /// Voxels (keys, upper end exclusive) outside which no box is looked at.
     keep: Option<Box3>,
+    /// The ray limits' bounds, to which walks are clipped ([`View::brick_walk`]).
+    bounds: Option<Aabb>,
     /// A pixel's world direction per metre of camera depth is `R (x_u, y_v, 1)`, the sum of a
     /// part per column, `x_u R e_x` (per axis, so that a row of pixels loads as lanes), and a
     /// part per row, `y_v R e_y + R e_z`: see [`View::inv_dirs`].
@@ -1237,6 +1245,7 @@ impl<'a> View<'a> {
             v_last: (seg.height - 1) as f64,
             dense_range2: dense_range * dense_range,
             keep: None,
+            bounds: None,
             col_dirs,
             row_dirs,
             col_block_dirs,
@@ -1255,6 +1264,7 @@ impl<'a> View<'a> {
     ) -> Option<(Self, Box3)> {
         let deepest = seg.deepest()?;
         let mut view = View::new(rays, seg, resolution);
+        view.bounds = limits.bounds;
         view.keep = keep.map(|k| {
             let (lo, hi) = box_keys(k, resolution);
             Box3 { lo, hi: hi.map(|h| h + 1) }
@@ -1348,14 +1358,69 @@ impl<'a> View<'a> {
     /// tests only rule out what the walk would not visit: their depths are widened by a
     /// relative 1e-5, far beyond the rounding of the f32 depths (2^-24), and
     /// [`View::block_misses`] is conservative. (On coffin-world at 0.02 m only 37% of the
-    /// footprints' pixels entered their brick.)
-    fn walk_brick(&self, rays: &FrameRays, limits: &RayLimits, brick: BrickKey, fp: &Footprint) -> SlotMask {
+    /// footprints' pixels entered their brick.) The rays left are set up a block's row at a
+    /// time ([`View::walk_pixels`]) from the segments' depths, not as [`PixelRay`]s: a
+    /// coffin-world frame at 0.02 m took 0.87x the time (BENCHMARKS.md, session 49).
+    fn walk_brick(&self, brick: BrickKey, fp: &Footprint) -> SlotMask {
         #[cfg(target_arch = "x86_64")]
         if std::is_x86_feature_detected!("avx2") {
             // SAFETY: the processor has AVX2, checked just above.
-            return unsafe { self.walk_brick_avx2(rays, limits, brick, fp) };
+            return unsafe { self.walk_brick_avx2(brick, fp) };
         }
-        self.walk_brick_baseline(rays, limits, brick, fp)
+        self.walk_brick_baseline(brick, fp)
+    }
+
+    /// What the walks of [`View::walk_pixels`] through brick `b` share: the camera relative to
+    /// the brick's lower corner, and the box the walks are clipped to (the brick, cut to the
+    /// bounds), relative to the camera.
+    #[inline(always)]
+    fn brick_walk(&self, b: &Box3) -> BrickWalk {
+        let cell = b.aabb(self.resolution);
+        let (corner, mut lo, mut hi) = (cell.min, cell.min, cell.max);
+        if let Some(bounds) = &self.bounds {
+            for a in 0..3 {
+                (lo[a], hi[a]) = (max(lo[a], bounds.min[a]), min(hi[a], bounds.max[a]));
+            }
+        }
+        BrickWalk {
+            origin: std::array::from_fn(|a| self.origin[a] - corner[a]),
+            lo: std::array::from_fn(|a| lo[a] - self.origin[a]),
+            hi: std::array::from_fn(|a| hi[a] - self.origin[a]),
+        }
+    }
+
+    /// Walks the rays of pixels `u..u + BLOCK` of row `v` with the segments `lanes` (the
+    /// others [`PixelDepths::NONE`]) through the brick of `walk`, setting the voxels they
+    /// cross in `mask`. A ray is parametrised by camera depth (its direction per metre of
+    /// depth made from its column and row, as [`View::inv_dirs`]), the lanes' directions
+    /// inverted and clipped to the box side by side, then each ray that enters walked by
+    /// [`mark_in_brick`]. The voxels are those of walking the pixel's ray as [`PixelRay`]
+    /// over its segment ([`super::for_each_crossing`]), up to rounding where a ray grazes an edge or
+    /// a corner (tested).
+    #[inline(always)]
+    fn walk_pixels(&self, walk: &BrickWalk, (u, v): (usize, usize), lanes: &[PixelDepths; BLOCK], mask: &mut SlotMask) {
+        let row = self.row_dirs[v];
+        let (mut dirs, mut inv) = ([[0.0; BLOCK]; 3], [[0.0; BLOCK]; 3]);
+        let (mut t0, mut t1): ([f64; BLOCK], [f64; BLOCK]) =
+            (std::array::from_fn(|j| lanes[j].0[0] as f64), std::array::from_fn(|j| lanes[j].0[1] as f64));
+        // (Loops, not `array::from_fn`, which may stay a baseline function of its own.)
+        for a in 0..3 {
+            for j in 0..BLOCK {
+                dirs[a][j] = self.col_dirs[a][u + j] + row[a];
+                inv[a][j] = 1.0 / dirs[a][j];
+                let (ta, tb) = (walk.lo[a] * inv[a][j], walk.hi[a] * inv[a][j]);
+                // (A zero direction gives a NaN for a box side through the camera, which the
+                // comparisons of `min` and `max` leave out.)
+                t0[j] = max(t0[j], min(ta, tb));
+                t1[j] = min(t1[j], max(ta, tb));
+            }
+        }
+        for j in 0..BLOCK {
+            if t0[j] < t1[j] {
+                let d = [dirs[0][j], dirs[1][j], dirs[2][j]];
+                mark_in_brick(walk.origin, d, [inv[0][j], inv[1][j], inv[2][j]], (t0[j], t1[j]), self.resolution, mask);
+            }
+        }
     }
 
     /// [`split_voxels!`] in the copy for this processor.
@@ -1744,7 +1809,7 @@ pub(super) mod tests {
     use crate::frames::{Camera, DepthImage, look_at};
     use crate::map::mask_slots;
     use crate::random::Rng;
-    use crate::rays::CUT_IN_LANES;
+    use crate::rays::{CUT_IN_LANES, for_each_crossing};
 
     /// The slab test in four lanes gives each lane's own answer (no lane leaks into another),
     /// which is the brute-force answer: the segment's depths overlap the box's along all three
@@ -1955,50 +2020,56 @@ pub(super) mod tests {
 
     /// A brick's walk visits the voxels that walking every pixel of its footprint visits:
     /// the blocks and pixels it rules out first never hold one (both copies, on random frames
-    /// with and without limits, every undecided brick).
+    /// with and without limits, every undecided brick). And those are the voxels of walking
+    /// each pixel's ray in metres over its segment within the brick ([`for_each_crossing`]),
+    /// up to rays that graze an edge or a corner.
     #[test]
     fn a_bricks_walk_rules_out_only_pixels_that_miss_it() {
-        let (mut bricks, mut ruled_out) = (0, 0usize);
+        let (mut bricks, mut ruled_out, mut differ, mut total) = (0, 0usize, 0u32, 0u32);
         for_random_cases(23, (0.02, 0.2), |case, rays, limits, r| {
             with_undecided(rays, limits, r, |view, undecided| {
                 for (brick, footprint) in undecided {
-                    let mut all = [0u64; 8];
-                    let bounds = Box3::of_brick(brick).aabb(r);
-                    let rect = &footprint.rect;
-                    let mut missing = 0;
+                    let (b, rect) = (Box3::of_brick(brick), &footprint.rect);
+                    let (walk, cell) = (view.brick_walk(&b), b.aabb(r));
+                    let (mut all, mut metres) = ([0u64; 8], [0u64; 8]);
                     for v in rect.v0..rect.v1 + 1 {
                         for u in rect.u0..rect.u1 + 1 {
+                            let mut lanes = [PixelDepths::NONE; BLOCK];
+                            lanes[0] = view.seg.pixel(v * view.seg.width + u);
+                            let before = all;
+                            view.walk_pixels(&walk, (u, v), &lanes, &mut all);
+                            ruled_out += (before == all) as usize;
                             let Some(ray) = rays.ray(u as u32, v as u32) else { continue };
                             let Some(seg) = limits.hit_miss_segment(&ray, r) else { continue };
-                            let Some((a, b)) = bounds.clip(ray.origin, ray.dir, seg.start, seg.end) else {
-                                missing += 1;
-                                continue;
-                            };
+                            let Some((a, b)) = cell.clip(ray.origin, ray.dir, seg.start, seg.end) else { continue };
                             for_each_crossing(ray.origin, ray.dir, a, b, r, |c| {
                                 if c.key.brick() == brick {
-                                    mask_set(&mut all, c.key.slot());
+                                    mask_set(&mut metres, c.key.slot());
                                 }
                                 ControlFlow::Continue(())
                             });
                         }
                     }
                     assert_eq!(
-                        view.walk_brick_baseline(rays, limits, brick, &footprint),
+                        view.walk_brick_baseline(brick, &footprint),
                         all,
                         "case {case}, brick {brick:?}, {rect:?}"
                     );
                     #[cfg(target_arch = "x86_64")]
                     if std::is_x86_feature_detected!("avx2") {
                         // SAFETY: the processor has AVX2, checked just above.
-                        let fast = unsafe { view.walk_brick_avx2(rays, limits, brick, &footprint) };
+                        let fast = unsafe { view.walk_brick_avx2(brick, &footprint) };
                         assert_eq!(fast, all, "case {case}, brick {brick:?}, {rect:?} (AVX2)");
                     }
+                    differ += (0..8).map(|w| (all[w] ^ metres[w]).count_ones()).sum::<u32>();
+                    total += metres.iter().map(|w| w.count_ones()).sum::<u32>();
                     bricks += 1;
-                    ruled_out += missing;
                 }
             });
         });
+        eprintln!("{differ} of {total} voxels differ from walking in metres");
         assert!(bricks >= 100 && ruled_out >= 1000, "{bricks} bricks, {ruled_out} pixels missing theirs");
+        assert!(total >= 10_000 && differ * 10_000 <= total, "{differ} of {total} voxels differ");
     }
 
     /// The AVX2 and AVX-512 copies of a row's filling give the baseline copy's segments and

@@ -1395,8 +1395,8 @@ impl<'a> View<'a> {
     /// depth made from its column and row, as [`View::inv_dirs`]), the lanes' directions
     /// inverted and clipped to the box side by side, then each ray that enters walked by
     /// [`mark_in_brick`]. The voxels are those of walking the pixel's ray as [`PixelRay`]
-    /// over its segment ([`super::for_each_crossing`]), up to rounding where a ray grazes an edge or
-    /// a corner (tested).
+    /// over its segment ([`super::for_each_crossing`]), up to rounding where a ray grazes an
+    /// edge or a corner (tested).
     #[inline(always)]
     fn walk_pixels(&self, walk: &BrickWalk, (u, v): (usize, usize), lanes: &[PixelDepths; BLOCK], mask: &mut SlotMask) {
         let row = self.row_dirs[v];

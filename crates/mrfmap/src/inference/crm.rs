@@ -59,7 +59,9 @@ use rustc_hash::FxHashMap;
 use super::Engine;
 use crate::error::{Error, Result};
 use crate::frames::{Frame, NoiseModel, RangeScan, default_noise_model};
-use crate::map::{BRICK_VOXELS, BrickKey, BrickList, Map, MapVoxel, VoxelKey, check_resolution, mask_set, mask_slots};
+use crate::map::{
+    BRICK_VOXELS, BrickKey, BrickList, Map, MapVoxel, VoxelKey, box_keys, check_resolution, mask_set, mask_slots,
+};
 use crate::rays::{RayLimits, Rays, for_each_crossing};
 
 /// Means are kept in `[MEAN_EPS, 1 - MEAN_EPS]` inside the cause model.
@@ -412,6 +414,12 @@ impl CrmEngine {
         // of a scan's few (64 beams), so that a scan's rays are not all on one core.
         let block_rows = (rays.rows() / 8).clamp(1, 32);
         let r = self.resolution;
+        // The voxels outside the bounds are not the map's: a segment cut at a face that lies
+        // on voxel faces reaches the voxel beyond it by a rounding error, and that crossing is
+        // left out (as the log-odds engine leaves it: `LogOddsEngine::bounds_keys`).
+        let bounds = self.limits.bounds.map(|b| box_keys(&b, r));
+        let outside =
+            |key: VoxelKey| bounds.is_some_and(|(lo, hi)| (0..3).any(|a| key.0[a] < lo[a] || key.0[a] > hi[a]));
         let blocks: Vec<FrameUpdates> = (0..rays.rows().div_ceil(block_rows))
             .into_par_iter()
             .map(|b| {
@@ -440,6 +448,9 @@ impl CrmEngine {
                         means.clear();
                         nus.clear();
                         for_each_crossing(ray.origin, ray.dir, seg.start, seg.end, r, |c| {
+                            if outside(c.key) {
+                                return ControlFlow::Continue(());
+                            }
                             // A beam with no return could not have been stopped by any voxel.
                             let nu =
                                 if ray.returned { likelihood.over(c.s_in * ray.cz, c.s_out * ray.cz) } else { 0.0 };
@@ -471,6 +482,9 @@ impl CrmEngine {
                             // voxel's likelihood, which the segment's end rules out in practice):
                             // take back the passes counted on the way.
                             for_each_crossing(ray.origin, ray.dir, seg.start, seg.end, r, |c| {
+                                if outside(c.key) {
+                                    return ControlFlow::Continue(());
+                                }
                                 let i = slot_of(&mut up, c.key);
                                 up.bricks.value_mut(i).passes[c.key.slot()] -= 1;
                                 ControlFlow::Continue(())
@@ -785,6 +799,23 @@ mod tests {
                 Frame { index: i, timestamp: i as f64, depth, pose, camera, noise: None }
             })
             .collect()
+    }
+
+    /// With bounds whose faces lie on voxel faces, crossed by the rays going in and coming
+    /// out, no voxel outside the box is touched (the wall lies beyond it).
+    #[test]
+    fn nothing_outside_the_bounds_is_touched() {
+        let bounds = crate::map::Aabb { min: [0.5, -0.2, -0.15], max: [0.9, 0.2, 0.2] };
+        let limits = RayLimits { max_range: None, bounds: Some(bounds) };
+        let mut e = CrmEngine::new(0.05, limits, CrmParams::default()).unwrap();
+        for f in wall_frames(4, 0.0) {
+            e.integrate(&f).unwrap();
+        }
+        let (lo, hi) = box_keys(&bounds, 0.05);
+        let map = e.map();
+        let outside = map.voxels.iter().filter(|(k, _)| (0..3).any(|a| k.0[a] < lo[a] || k.0[a] > hi[a])).count();
+        assert_eq!(outside, 0, "{outside} of {} voxels outside the bounds", map.voxels.len());
+        assert!(map.voxels.len() > 100, "{} voxels", map.voxels.len());
     }
 
     #[test]

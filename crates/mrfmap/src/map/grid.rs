@@ -121,6 +121,20 @@ pub fn mask_set(mask: &mut SlotMask, slot: usize) {
     mask[slot >> 6] |= 1 << (slot & 63);
 }
 
+/// The slots of brick `brick` whose voxels lie in the box of keys `lo..=hi` (inclusive per
+/// axis, as [`crate::map::box_keys`] gives them).
+pub fn box_slots(brick: BrickKey, lo: [i32; 3], hi: [i32; 3]) -> SlotMask {
+    // Per axis the brick's local coordinates in the box, half-open and within 0..8.
+    let range = |a: usize| {
+        let base = brick.0[a] * BRICK_EDGE;
+        ((lo[a] - base).clamp(0, BRICK_EDGE), (hi[a] + 1 - base).clamp(0, BRICK_EDGE))
+    };
+    let ([x0, x1], [y0, y1], [z0, z1]) = (range(0).into(), range(1).into(), range(2).into());
+    let row = if x0 < x1 { (u64::MAX >> (64 - (x1 - x0))) << x0 } else { 0 };
+    let layer = (y0..y1).fold(0u64, |m, y| m | row << (8 * y));
+    std::array::from_fn(|z| if (z0..z1).contains(&(z as i32)) { layer } else { 0 })
+}
+
 /// Iterates the set slots of `mask` in increasing order.
 pub fn mask_slots(mask: &SlotMask) -> impl Iterator<Item = usize> + '_ {
     MaskSlots { mask, word: 0, bits: mask[0] }
@@ -666,6 +680,33 @@ impl<V: Copy + Default> Grid<V> {
 mod tests {
     use super::*;
     use crate::random::Rng;
+
+    /// A brick's slots in a box of keys are those of its voxels that the box holds, for
+    /// boxes that cut it, hold it, or miss it.
+    #[test]
+    fn box_slots_are_the_voxels_in_the_box() {
+        let mut rng = Rng::new(5);
+        let (mut cut, mut whole, mut none) = (0, 0, 0);
+        for _ in 0..2000 {
+            let brick = BrickKey([0; 3].map(|_| rng.range(-3.0, 3.0).floor() as i32));
+            let lo: [i32; 3] = std::array::from_fn(|a| brick.0[a] * BRICK_EDGE + rng.range(-12.0, 10.0).floor() as i32);
+            let hi: [i32; 3] = std::array::from_fn(|a| lo[a] + rng.range(-2.0, 24.0).floor() as i32);
+            let got = box_slots(brick, lo, hi);
+            let want: SlotMask = std::array::from_fn(|w| {
+                (0..64).fold(0u64, |m, b| {
+                    let k = brick.voxel(w * 64 + b).0;
+                    m | (((0..3).all(|a| k[a] >= lo[a] && k[a] <= hi[a])) as u64) << b
+                })
+            });
+            assert_eq!(got, want, "{brick:?} {lo:?} {hi:?}");
+            match got {
+                m if m == [u64::MAX; 8] => whole += 1,
+                m if m == [0; 8] => none += 1,
+                _ => cut += 1,
+            }
+        }
+        assert!(cut > 100 && whole > 20 && none > 100, "{cut} {whole} {none}");
+    }
 
     #[test]
     fn keys_round_trip_through_bricks() {

@@ -15,8 +15,8 @@ mod tiled;
 
 pub(crate) use grid::floor_i32_lanes;
 pub use grid::{
-    BRICK_EDGE, BRICK_VOXELS, Brick, BrickKey, BrickList, Grid, SlotMask, VoxelKey, check_resolution, floor_i32,
-    mask_has, mask_set, mask_slots,
+    BRICK_EDGE, BRICK_VOXELS, Brick, BrickKey, BrickList, Grid, SlotMask, VoxelKey, box_slots, check_resolution,
+    floor_i32, mask_has, mask_set, mask_slots,
 };
 
 pub use kind::EngineKind;

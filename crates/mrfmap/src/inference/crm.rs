@@ -60,7 +60,7 @@ use super::Engine;
 use crate::error::{Error, Result};
 use crate::frames::{Frame, NoiseModel, RangeScan, default_noise_model};
 use crate::map::{
-    BRICK_VOXELS, BrickKey, BrickList, Map, MapVoxel, VoxelKey, box_keys, check_resolution, mask_set, mask_slots,
+    BRICK_VOXELS, BrickKey, BrickList, Map, MapVoxel, VoxelKey, check_resolution, key_in_box, mask_set, mask_slots,
 };
 use crate::rays::{RayLimits, Rays, for_each_crossing};
 
@@ -414,12 +414,10 @@ impl CrmEngine {
         // of a scan's few (64 beams), so that a scan's rays are not all on one core.
         let block_rows = (rays.rows() / 8).clamp(1, 32);
         let r = self.resolution;
-        // The voxels outside the bounds are not the map's: a segment cut at a face that lies
-        // on voxel faces reaches the voxel beyond it by a rounding error, and that crossing is
-        // left out (as the log-odds engine leaves it: `LogOddsEngine::bounds_keys`).
-        let bounds = self.limits.bounds.map(|b| box_keys(&b, r));
-        let outside =
-            |key: VoxelKey| bounds.is_some_and(|(lo, hi)| (0..3).any(|a| key.0[a] < lo[a] || key.0[a] > hi[a]));
+        // Crossings outside the bounds are left out (`RayLimits::bounds_keys`: rounding at the
+        // box's faces).
+        let bounds = self.limits.bounds_keys(r);
+        let outside = |key: VoxelKey| bounds.is_some_and(|b| !key_in_box(key.0, b));
         let blocks: Vec<FrameUpdates> = (0..rays.rows().div_ceil(block_rows))
             .into_par_iter()
             .map(|b| {
@@ -811,9 +809,9 @@ mod tests {
         for f in wall_frames(4, 0.0) {
             e.integrate(&f).unwrap();
         }
-        let (lo, hi) = box_keys(&bounds, 0.05);
+        let (lo, hi) = crate::map::box_keys(&bounds, 0.05);
         let map = e.map();
-        let outside = map.voxels.iter().filter(|(k, _)| (0..3).any(|a| k.0[a] < lo[a] || k.0[a] > hi[a])).count();
+        let outside = map.voxels.iter().filter(|(k, _)| !key_in_box(k.0, (lo, hi))).count();
         assert_eq!(outside, 0, "{outside} of {} voxels outside the bounds", map.voxels.len());
         assert!(map.voxels.len() > 100, "{} voxels", map.voxels.len());
     }

@@ -24,7 +24,7 @@ use rustc_hash::FxHashMap;
 use super::{Engine, SavedMap, logit, sigmoid};
 use crate::error::{Error, Result};
 use crate::frames::{Camera, Frame, RangeScan};
-use crate::map::{Aabb, BrickKey, BrickList, Grid, Map, MapVoxel, SlotMask, VoxelKey, box_keys, box_slots};
+use crate::map::{Aabb, BrickKey, BrickList, Grid, Map, MapVoxel, SlotMask, VoxelKey, box_keys, box_slots, key_in_box};
 use crate::rays::{CrossedVoxels, PixelRay, Projector, RayLimits, Rays, for_each_crossing};
 
 /// How one ray changes the voxels it crosses (occupancy probabilities, turned into log-odds).
@@ -221,15 +221,6 @@ impl LogOddsEngine {
         Some(move |b: [i32; 3]| (0..3).all(|a| b[a] >= lo[a] && b[a] <= hi[a]))
     }
 
-    /// The keys of the voxels in the ray limits' bounds (inclusive), if there are bounds. The
-    /// rays are cut at the box's faces, but a ray that leaves or enters by a face lying on
-    /// voxel faces reaches the voxel beyond it by a rounding error (about half such rays, walked
-    /// or projected): those voxels are left out, as OctoMap keeps only its bounding box's keys
-    /// ("--bounds maps only that box").
-    fn bounds_keys(&self) -> Option<([i32; 3], [i32; 3])> {
-        self.limits.bounds.as_ref().map(|b| box_keys(b, self.grid.resolution()))
-    }
-
     /// Adds `delta` to a voxel's log-odds (allocating it at 0 = prior 0.5), then clamps.
     #[inline]
     fn update(l: &mut f32, delta: f32, min: f32, max: f32) {
@@ -285,7 +276,8 @@ impl LogOddsEngine {
         if let Some(keep) = self.keep_bricks() {
             marks.bricks.retain(|b, _| keep(b.0));
         }
-        if let Some((lo, hi)) = self.bounds_keys() {
+        if let Some((lo, hi)) = self.limits.bounds_keys(self.grid.resolution()) {
+            // (`RayLimits::bounds_keys`: rounding at the box's faces.)
             marks.bricks.retain(|b, m| {
                 let inside = box_slots(*b, lo, hi);
                 m.hit.iter_mut().chain(&mut m.free).zip(inside.iter().cycle()).for_each(|(w, i)| *w &= i);
@@ -349,11 +341,9 @@ impl LogOddsEngine {
                 }
                 a
             });
-        let (keep, bounds) = (self.keep_bricks(), self.bounds_keys());
+        let (keep, bounds) = (self.keep_bricks(), self.limits.bounds_keys(r));
         for (key, (_, _, delta)) in best {
-            if keep.as_ref().is_some_and(|keep| !keep(key.brick().0))
-                || bounds.is_some_and(|(lo, hi)| (0..3).any(|a| key.0[a] < lo[a] || key.0[a] > hi[a]))
-            {
+            if keep.as_ref().is_some_and(|keep| !keep(key.brick().0)) || bounds.is_some_and(|b| !key_in_box(key.0, b)) {
                 continue;
             }
             Self::update(self.grid.get_or_insert(key, 0.0), delta, self.min, self.max);
@@ -792,7 +782,7 @@ mod tests {
                 e.integrate(&frame).unwrap();
             }
             let grid = e.log_odds();
-            let outside = grid.iter().filter(|(k, _)| (0..3).any(|a| k.0[a] < lo[a] || k.0[a] > hi[a])).count();
+            let outside = grid.iter().filter(|(k, _)| !key_in_box(k.0, (lo, hi))).count();
             assert_eq!(outside, 0, "{model:?} {marking:?}: {outside} of {} voxels outside the bounds", grid.len());
             assert!(grid.len() > 4_000, "{model:?} {marking:?}: {} voxels", grid.len());
         }

@@ -21,7 +21,7 @@ pub use grid::{
 
 pub use kind::EngineKind;
 pub use ops::{Change, Grid2d, MAX_GRID2D_CELLS, VoxelState};
-pub use region::{Aabb, box_keys};
+pub use region::{Aabb, box_keys, key_in_box};
 pub use tiled::{INDEX_FILE, TileEntry, TileGrid, TileIndex, TileKey, TileTotals, TiledMap};
 
 use std::collections::BTreeMap;

@@ -5,7 +5,7 @@
 //! A box selects the voxels that overlap it with positive volume (the same rule as
 //! [`crate::outputs::query_box`]).
 
-use super::{Aabb, box_keys};
+use super::{Aabb, box_keys, key_in_box};
 use super::{Grid, Map, MapVoxel, VoxelKey};
 use crate::error::{Error, Result};
 
@@ -52,17 +52,12 @@ pub struct Change {
 }
 
 impl Map {
-    /// Is `key` inside `region` (overlapping it with positive volume)?
-    fn key_in(key: VoxelKey, lo: [i32; 3], hi: [i32; 3]) -> bool {
-        (0..3).all(|a| key.0[a] >= lo[a] && key.0[a] <= hi[a])
-    }
-
     /// The voxels of this map that overlap `region`.
     pub fn crop(&self, region: &Aabb) -> Map {
         let (lo, hi) = box_keys(region, self.resolution());
         let mut out = Map { voxels: Grid::new(self.resolution()).expect("valid resolution"), ..self.clone_header() };
         for (key, v) in self.voxels.iter() {
-            if Self::key_in(key, lo, hi) {
+            if key_in_box(key.0, (lo, hi)) {
                 out.voxels.insert(key, *v);
             }
         }
@@ -72,7 +67,7 @@ impl Map {
     /// Makes the voxels overlapping `region` unknown; returns how many were known.
     pub fn clear(&mut self, region: &Aabb) -> usize {
         let (lo, hi) = box_keys(region, self.resolution());
-        let doomed: Vec<VoxelKey> = self.voxels.iter().map(|(k, _)| k).filter(|k| Self::key_in(*k, lo, hi)).collect();
+        let doomed: Vec<VoxelKey> = self.voxels.iter().map(|(k, _)| k).filter(|k| key_in_box(k.0, (lo, hi))).collect();
         for k in &doomed {
             self.voxels.remove(*k);
         }
@@ -139,7 +134,7 @@ impl Map {
         let origin = [klo[0] as f64 * r, klo[1] as f64 * r];
         let mut grid = Grid2d { resolution: r, origin, width: w, height: h, cells: vec![None; w * h] };
         for (key, v) in self.voxels.iter() {
-            if !Self::key_in(key, klo, khi) {
+            if !key_in_box(key.0, (klo, khi)) {
                 continue;
             }
             let i = (key.0[1] - klo[1]) as usize * w + (key.0[0] - klo[0]) as usize;

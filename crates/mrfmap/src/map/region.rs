@@ -75,6 +75,12 @@ impl Aabb {
     }
 }
 
+/// Whether `key` lies in the inclusive key range `(lo, hi)` (as [`box_keys`] gives it).
+#[inline]
+pub fn key_in_box(key: [i32; 3], (lo, hi): ([i32; 3], [i32; 3])) -> bool {
+    (0..3).all(|a| key[a] >= lo[a] && key[a] <= hi[a])
+}
+
 /// The inclusive voxel-key range of the voxels overlapping `region` with positive volume.
 pub fn box_keys(region: &Aabb, resolution: f64) -> ([i32; 3], [i32; 3]) {
     let lo = region.min.map(|x| floor_i32(x / resolution));

@@ -21,7 +21,7 @@ use nalgebra::{Matrix3, Vector3};
 use rayon::prelude::*;
 
 use crate::frames::{Camera, DepthImage, Frame, NoiseModel, Pose, RangeScan, RayLikelihood};
-use crate::map::{Aabb, floor_i32_lanes};
+use crate::map::{Aabb, box_keys, floor_i32_lanes};
 
 /// A world-space ray through one valid depth pixel (or one beam of a range scan).
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -720,6 +720,16 @@ impl RayLimits {
             return Err(crate::Error::Invalid(format!("max range must be positive, got {m}")));
         }
         Ok(())
+    }
+
+    /// The keys of the voxels in the bounds (inclusive, as [`box_keys`] gives them), if there
+    /// are bounds: the voxels an engine may touch. The rays are cut at the box's faces, but a
+    /// ray that leaves or enters by a face lying on voxel faces reaches the voxel beyond it by
+    /// a rounding error (about half such rays, walked or projected); the engines leave those
+    /// voxels out, as OctoMap keeps only its bounding box's keys ("--bounds maps only that
+    /// box").
+    pub fn bounds_keys(&self, resolution: f64) -> Option<([i32; 3], [i32; 3])> {
+        self.bounds.as_ref().map(|b| box_keys(b, resolution))
     }
 
     /// Range of the ray's measured surface, `None` when it lies beyond the max range (the

@@ -445,6 +445,13 @@ mod tests {
         }
     }
 
+    /// A resolution from 1 to 10 cm, an origin in a 6 m cube and a unit direction.
+    fn random_ray(rng: &mut Rng) -> (f64, [f64; 3], [f64; 3]) {
+        let r = [0.01, 0.02, 0.05, 0.1][(rng.next_u64() % 4) as usize];
+        let origin = [0; 3].map(|_| rng.range(-3.0, 3.0));
+        (r, origin, unit(rng))
+    }
+
     #[test]
     fn random_rays_match_brute_force() {
         let mut rng = Rng::new(42);
@@ -497,9 +504,7 @@ mod tests {
         let mut rng = Rng::new(46);
         let (mut differ, mut total) = (0, 0);
         for trial in 0..3000 {
-            let r = [0.01, 0.02, 0.05, 0.1][(rng.next_u64() % 4) as usize];
-            let origin = [0; 3].map(|_| rng.range(-3.0, 3.0));
-            let mut dir = unit(&mut rng);
+            let (r, origin, mut dir) = random_ray(&mut rng);
             if trial % 10 == 0 {
                 dir[(rng.next_u64() % 3) as usize] = 0.0;
             }
@@ -544,9 +549,7 @@ mod tests {
         let mut rng = Rng::new(44);
         let (mut skipped, mut kept) = (0, 0);
         for trial in 0..600 {
-            let r = [0.01, 0.02, 0.05, 0.1][(rng.next_u64() % 4) as usize];
-            let mut origin = [0; 3].map(|_| rng.range(-3.0, 3.0));
-            let mut dir = unit(&mut rng);
+            let (r, mut origin, mut dir) = random_ray(&mut rng);
             match trial % 5 {
                 // From a voxel corner along an axis or a lattice diagonal: through faces,
                 // edges and corners of voxels and bricks.

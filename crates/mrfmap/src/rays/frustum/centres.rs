@@ -300,6 +300,7 @@ mod tests {
 
     use super::super::tests::{projected, random_frame, random_limits, voxel_sets};
     use super::*;
+    use crate::map::key_in_box;
     use crate::random::Rng;
 
     type Sets = (BTreeSet<VoxelKey>, BTreeSet<VoxelKey>);
@@ -333,13 +334,13 @@ mod tests {
             + 2.0 * r;
         let lo = VoxelKey::from_point((origin - Vector3::repeat(reach)).into(), r).0;
         let hi = VoxelKey::from_point((origin + Vector3::repeat(reach)).into(), r).0;
-        let inside = limits.bounds.as_ref().map(|b| box_keys(b, r));
+        let inside = limits.bounds_keys(r);
         let (mut free, mut hit) = (BTreeSet::new(), BTreeSet::new());
         for kz in lo[2]..=hi[2] {
             for ky in lo[1]..=hi[1] {
                 for kx in lo[0]..=hi[0] {
                     let key = VoxelKey([kx, ky, kz]);
-                    if inside.is_some_and(|(lo, hi)| (0..3).any(|a| key.0[a] < lo[a] || key.0[a] > hi[a])) {
+                    if inside.is_some_and(|b| !key_in_box(key.0, b)) {
                         continue;
                     }
                     let offset = Vector3::from(key.0.map(|k| (k as f64 + 0.5) * r)) - origin;

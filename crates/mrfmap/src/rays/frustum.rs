@@ -725,7 +725,11 @@ fn has_avx512() -> bool {
 /// they are, those in `settled` not at all (see [`Projector::crossed_voxels`]; a half made of
 /// such voxels and surfaces is not judged), the others by
 /// the exact test ([`View::voxel_crossed`]). A box's eight halves are judged together, unless
-/// they are voxels: their corners are 27 points, not 64. A half the pyramid leaves undecided
+/// they are voxels: their corners are 27 points, not 64. A half holding a surface is split
+/// unjudged: a segment ends in it, so it is seen and not seen through, and judging it cost
+/// more than it told (a third of the halves judged on coffin-world at 0.05 m held a surface;
+/// without their judging a frame took 0.973x the time, BENCHMARKS.md, session 50). A half the
+/// pyramid leaves undecided
 /// and that holds no surface gets the exact test as a whole before it is split: behind a
 /// surface, most undecided voxels lie in halves no segment enters, and one test of the half
 /// settles its eight voxels (or 64) at once. One source
@@ -786,14 +790,17 @@ macro_rules! split_voxels {
                         cube_set(&child, surface, mask);
                         continue;
                     }
+                    // (A half holding a surface: split unjudged, above.)
+                    if cube_meets(&child, surface) {
+                        self.$name(child, surface, settled, mask);
+                        continue;
+                    }
                     // (Inside a brick that `split_voxels` was called for, every box is dense.)
                     match self.judge(corners, true) {
                         (Seen::None, _) => {}
                         // (A seen box always has a footprint; without one, it is split untested.)
                         (Seen::Some, f) => {
-                            if cube_meets(&child, surface)
-                                || f.is_none_or(|f| self.box_crossed(&child, &f.rect, f.depths, f.centre))
-                            {
+                            if f.is_none_or(|f| self.box_crossed(&child, &f.rect, f.depths, f.centre)) {
                                 self.$name(child, surface, settled, mask)
                             }
                         }

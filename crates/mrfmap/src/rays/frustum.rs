@@ -527,6 +527,22 @@ impl Segments {
         PixelDepths([self.starts.get(i).copied().unwrap_or(0.0), self.ends[i]])
     }
 
+    /// The segments of pixels `u0..u1` (at most [`BLOCK`]) of row `v` that may reach camera
+    /// depths `(z_near, z_far)` ([`PixelDepths::miss`]), as lanes; the others, and the lanes
+    /// past `u1`, [`PixelDepths::NONE`]. (A branch-free read of all four lanes took 1.006x
+    /// the time of a coffin-world frame at 0.05 m, BENCHMARKS.md, session 50.)
+    #[inline(always)]
+    fn row_lanes(&self, (u0, u1): (usize, usize), v: usize, (z_near, z_far): (f32, f32)) -> [PixelDepths; BLOCK] {
+        let mut lanes = [PixelDepths::NONE; BLOCK];
+        for (j, lane) in lanes[..u1 - u0].iter_mut().enumerate() {
+            let p = self.pixel(v * self.width + u0 + j);
+            if !p.miss(z_near, z_far) {
+                *lane = p;
+            }
+        }
+        lanes
+    }
+
     /// Largest end depth over all pixels (`None` without segments).
     fn deepest(&self) -> Option<f32> {
         let top = self.levels.last()?.cells.first()?.end_max();
@@ -837,15 +853,8 @@ macro_rules! walk_brick {
                 let ((z_near, z_far), widen) = (fp.depths, WIDEN as f32);
                 let (z_near, z_far) = (z_near - z_near.abs() * widen, z_far + z_far.abs() * widen);
                 let walk = self.brick_walk(&b);
-                let (seg, width) = (self.seg, self.seg.width);
                 let _ = self.blocks_reaching(rect, (z_near, z_far), &lo, &hi, #[inline(always)] |(u0, u1), v| {
-                    let mut lanes = [PixelDepths::NONE; BLOCK];
-                    for (j, lane) in lanes[..u1 - u0].iter_mut().enumerate() {
-                        let p = seg.pixel(v * width + u0 + j);
-                        if !p.miss(z_near, z_far) {
-                            *lane = p;
-                        }
-                    }
+                    let lanes = self.seg.row_lanes((u0, u1), v, (z_near, z_far));
                     if lanes.iter().any(|p| p.0[0] <= p.0[1]) {
                         self.walk_pixels(&walk, (u0, v), &lanes, &mut mask);
                     }
@@ -1399,21 +1408,19 @@ impl<'a> View<'a> {
     /// Walks the rays of pixels `u..u + BLOCK` of row `v` with the segments `lanes` (the
     /// others [`PixelDepths::NONE`]) through the brick of `walk`, setting the voxels they
     /// cross in `mask`. A ray is parametrised by camera depth (its direction per metre of
-    /// depth made from its column and row, as [`View::inv_dirs`]), the lanes' directions
+    /// depth from [`View::dirs`], as [`View::inv_dirs`]'s), the lanes' directions
     /// inverted and clipped to the box side by side, then each ray that enters walked by
     /// [`mark_in_brick`]. The voxels are those of walking the pixel's ray as [`PixelRay`]
     /// over its segment ([`super::for_each_crossing`]), up to rounding where a ray grazes an
     /// edge or a corner (tested).
     #[inline(always)]
     fn walk_pixels(&self, walk: &BrickWalk, (u, v): (usize, usize), lanes: &[PixelDepths; BLOCK], mask: &mut SlotMask) {
-        let row = self.row_dirs[v];
-        let (mut dirs, mut inv) = ([[0.0; BLOCK]; 3], [[0.0; BLOCK]; 3]);
+        let (dirs, mut inv) = (self.dirs::<BLOCK>(u, v), [[0.0; BLOCK]; 3]);
         let (mut t0, mut t1): ([f64; BLOCK], [f64; BLOCK]) =
             (std::array::from_fn(|j| lanes[j].0[0] as f64), std::array::from_fn(|j| lanes[j].0[1] as f64));
         // (Loops, not `array::from_fn`, which may stay a baseline function of its own.)
         for a in 0..3 {
             for j in 0..BLOCK {
-                dirs[a][j] = self.col_dirs[a][u + j] + row[a];
                 inv[a][j] = 1.0 / dirs[a][j];
                 let (ta, tb) = (walk.lo[a] * inv[a][j], walk.hi[a] * inv[a][j]);
                 // (A zero direction gives a NaN for a box side through the camera, which the
@@ -1544,14 +1551,27 @@ impl<'a> View<'a> {
     /// simulated scene) lost 60 voxels the walk keeps.
     #[inline(always)]
     fn inv_dirs<const N: usize>(&self, u: usize, v: usize) -> [[f32; N]; 3] {
-        // (Loops, not `array::from_fn`, which may stay a baseline function of its own.)
-        let (row, mut inv) = (self.row_dirs[v], [[0.0; N]; 3]);
-        for (a, inv) in inv.iter_mut().enumerate() {
-            for (i, c) in inv.iter_mut().zip(&self.col_dirs[a][u..u + N]) {
-                *i = (1.0 / (c + row[a])) as f32;
+        let (dirs, mut inv) = (self.dirs::<N>(u, v), [[0.0; N]; 3]);
+        for (inv, dirs) in inv.iter_mut().zip(&dirs) {
+            for (i, d) in inv.iter_mut().zip(dirs) {
+                *i = (1.0 / d) as f32;
             }
         }
         inv
+    }
+
+    /// The world directions per metre of camera depth of pixels `u..u + N` of row `v`, as
+    /// lanes per axis: each the sum of its column's part and its row's, in f64.
+    #[inline(always)]
+    fn dirs<const N: usize>(&self, u: usize, v: usize) -> [[f64; N]; 3] {
+        // (Loops, not `array::from_fn`, which may stay a baseline function of its own.)
+        let (row, mut dirs) = (self.row_dirs[v], [[0.0; N]; 3]);
+        for (a, dirs) in dirs.iter_mut().enumerate() {
+            for (d, c) in dirs.iter_mut().zip(&self.col_dirs[a][u..u + N]) {
+                *d = c + row[a];
+            }
+        }
+        dirs
     }
 
     /// Whether no pixel of the blocks `bu.0..=bu.1` x `bv.0..=bv.1` of the pyramid's first
@@ -1691,7 +1711,6 @@ impl<'a> View<'a> {
     /// function of its own, called from the AVX2 copy.)
     #[inline(always)]
     fn pixels_cross(&self, rect: &Rect, (z_near, z_far): (f32, f32), lo: &[f32; 3], hi: &[f32; 3]) -> bool {
-        let (seg, width) = (self.seg, self.seg.width);
         self.blocks_reaching(
             rect,
             (z_near, z_far),
@@ -1699,13 +1718,7 @@ impl<'a> View<'a> {
             hi,
             #[inline(always)]
             |(u0, u1), v| {
-                let mut lanes = [PixelDepths::NONE; BLOCK];
-                for (j, lane) in lanes[..u1 - u0].iter_mut().enumerate() {
-                    let p = seg.pixel(v * width + u0 + j);
-                    if !p.miss(z_near, z_far) {
-                        *lane = p;
-                    }
-                }
+                let lanes = self.seg.row_lanes((u0, u1), v, (z_near, z_far));
                 let crossed = lanes.iter().any(|p| p.0[0] <= p.0[1])
                     && slabs_cross(&lanes, &self.inv_dirs(u0, v), lo, hi).contains(&true);
                 if crossed { ControlFlow::Break(()) } else { ControlFlow::Continue(()) }
